@@ -1,0 +1,66 @@
+"""Pinhole camera and RGB-D frame types shared by every module.
+
+Conventions (used everywhere in eslam_core):
+- Poses are camera-to-world 4x4 matrices in OpenCV camera axes (x right, y down, z forward).
+- Depth is float32 metres; 0 means "no measurement".
+- Colour is uint8 RGB, H x W x 3.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Optional
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def __post_init__(self) -> None:
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"camera size must be positive, got {self.width}x{self.height}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"focal lengths must be positive, got fx={self.fx} fy={self.fy}")
+
+    def matrix(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, factor: float) -> "Intrinsics":
+        """Intrinsics of the image resized by `factor` (pixel-centre convention)."""
+        return replace(
+            self,
+            width=int(round(self.width * factor)),
+            height=int(round(self.height * factor)),
+            fx=self.fx * factor,
+            fy=self.fy * factor,
+            cx=(self.cx + 0.5) * factor - 0.5,
+            cy=(self.cy + 0.5) * factor - 0.5,
+        )
+
+
+@dataclass
+class Frame:
+    index: int  # position in the sequence as read (0-based)
+    timestamp: float  # seconds (or the data set's frame number when it has no clock)
+    rgb: np.ndarray  # H x W x 3 uint8
+    depth: np.ndarray  # H x W float32 metres, 0 = missing
+    pose: Optional[np.ndarray] = None  # 4x4 float64 camera-to-world (OpenCV axes), None = no ground truth
+
+
+def backproject(depth: np.ndarray, intr: Intrinsics, pose: Optional[np.ndarray] = None, stride: int = 1) -> np.ndarray:
+    """3D points (N x 3) of the valid depth pixels, in world coordinates when `pose` is given."""
+    d = depth[::stride, ::stride]
+    v, u = np.nonzero(d > 0)
+    z = d[v, u].astype(np.float64)
+    u = u * stride
+    v = v * stride
+    pts = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], axis=1)
+    if pose is not None:
+        pts = pts @ pose[:3, :3].T + pose[:3, 3]
+    return pts
