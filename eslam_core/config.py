@@ -1,0 +1,333 @@
+"""Typed, validated configuration.
+
+A configuration is a YAML file whose sections mirror the dataclasses below. A preset may `extends:` another file
+(path relative to itself, or the name of a shipped preset such as `replica`). Loading checks every key: an unknown
+key, a wrong type or an impossible value stops with a `ConfigError` naming the key and the file.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Optional
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration file is invalid; the message names the key, the file and what to do."""
+
+
+@dataclass
+class CameraConfig:
+    """Overrides of what the data set reader finds (all optional)."""
+
+    width: Optional[int] = None
+    height: Optional[int] = None
+    fx: Optional[float] = None
+    fy: Optional[float] = None
+    cx: Optional[float] = None
+    cy: Optional[float] = None
+    depth_scale: Optional[float] = None  # raw depth units per metre
+    image_scale: float = 1.0  # resize input images by this factor before SLAM (speed / resolution trade-off)
+    max_depth: float = 0.0  # ignore depth beyond this many metres (0 = keep all)
+
+    def validate(self, check) -> None:
+        intr = [self.width, self.height, self.fx, self.fy, self.cx, self.cy]
+        check(all(v is None for v in intr) or all(v is not None for v in intr),
+              "camera", "give all of width, height, fx, fy, cx, cy, or none of them")
+        check(0.0 < self.image_scale <= 1.0, "camera.image_scale", "must be in (0, 1]")
+        check(self.max_depth >= 0.0, "camera.max_depth", "must be >= 0 (0 disables the cut)")
+        check(self.depth_scale is None or self.depth_scale > 0, "camera.depth_scale", "must be positive")
+
+
+@dataclass
+class DatasetConfig:
+    kind: str = "auto"  # auto | tum | icl | replica | scannet | 7scenes
+
+    def validate(self, check) -> None:
+        kinds = ("auto", "tum", "icl", "replica", "scannet", "7scenes")
+        check(self.kind in kinds, "dataset.kind", f"must be one of {', '.join(kinds)}")
+
+
+@dataclass
+class SceneConfig:
+    # [[xmin, ymin, zmin], [xmax, ymax, zmax]] in the world frame (metres); None = estimate from the first frame.
+    bound: Optional[list] = None
+    bound_margin: float = 1.0  # metres added around the first frame's points when the bound is estimated
+
+    def validate(self, check) -> None:
+        if self.bound is not None:
+            ok = (len(self.bound) == 2 and all(len(c) == 3 for c in self.bound)
+                  and all(isinstance(v, (int, float)) for c in self.bound for v in c))
+            check(ok, "scene.bound", "must be [[xmin, ymin, zmin], [xmax, ymax, zmax]]")
+            check(all(self.bound[0][i] < self.bound[1][i] for i in range(3)), "scene.bound",
+                  "each minimum must be smaller than its maximum")
+        check(self.bound_margin >= 0.0, "scene.bound_margin", "must be >= 0")
+
+
+@dataclass
+class ModelConfig:
+    truncation: float = 0.06  # T, metres
+    coarse_resolution: float = 0.24  # cell size of the coarse geometry and appearance planes
+    fine_geometry_resolution: float = 0.06
+    fine_appearance_resolution: float = 0.03
+    channels: int = 32
+    # The paper says one hidden layer of 32; the official implementation uses two hidden layers of 16. We follow the
+    # implementation, whose numbers the paper reports.
+    decoder_hidden: int = 16
+    decoder_layers: int = 2
+    beta_init: float = 10.0  # sharpness of the SDF-to-density conversion
+    learn_beta: bool = True  # fixed on TUM in the official configuration
+    plane_init_std: float = 0.01
+
+    def validate(self, check) -> None:
+        check(self.truncation > 0, "model.truncation", "must be positive (metres)")
+        for name in ("coarse_resolution", "fine_geometry_resolution", "fine_appearance_resolution"):
+            check(getattr(self, name) > 0, f"model.{name}", "must be positive (metres)")
+        check(self.fine_geometry_resolution <= self.coarse_resolution, "model.fine_geometry_resolution",
+              "the fine plane must not be coarser than the coarse plane")
+        check(self.fine_appearance_resolution <= self.coarse_resolution, "model.fine_appearance_resolution",
+              "the fine plane must not be coarser than the coarse plane")
+        check(self.channels > 0, "model.channels", "must be positive")
+        check(self.decoder_hidden > 0 and self.decoder_layers >= 1, "model.decoder_hidden",
+              "decoders need at least one hidden layer of positive width")
+        check(self.beta_init > 0, "model.beta_init", "must be positive")
+        check(self.plane_init_std >= 0, "model.plane_init_std", "must be >= 0")
+
+
+@dataclass
+class RenderConfig:
+    n_stratified: int = 32
+    n_importance: int = 8  # near-surface samples (uniform in d +- surface_band*T), importance samples without depth
+    depth_far_factor: float = 1.2  # stratified samples span [0, factor * depth]
+    surface_band: float = 1.5  # in units of the truncation
+
+    def validate(self, check) -> None:
+        check(self.n_stratified >= 2, "render.n_stratified", "needs at least 2 samples")
+        check(self.n_importance >= 0, "render.n_importance", "must be >= 0")
+        check(self.depth_far_factor >= 1.0, "render.depth_far_factor", "must be >= 1")
+        check(self.surface_band > 0, "render.surface_band", "must be positive")
+
+
+@dataclass
+class LossWeights:
+    free_space: float = 5.0
+    truncation_center: float = 200.0
+    truncation_tail: float = 10.0
+    depth: float = 0.1
+    color: float = 5.0
+
+    def validate(self, check, where: str) -> None:
+        for f in dataclasses.fields(self):
+            check(getattr(self, f.name) >= 0, f"{where}.{f.name}", "loss weights must be >= 0")
+
+
+@dataclass
+class TrackingConfig:
+    iterations: int = 8
+    rays: int = 2000
+    lr_rotation: float = 0.001
+    lr_translation: float = 0.002
+    border: int = 75  # pixels ignored at the image border
+    outlier_factor: float = 10.0  # drop rays whose depth error exceeds this times the batch median
+    constant_velocity: bool = True
+    weights: LossWeights = field(default_factory=lambda: LossWeights(10.0, 200.0, 50.0, 1.0, 5.0))
+
+    def validate(self, check) -> None:
+        check(self.iterations >= 0, "tracking.iterations", "must be >= 0")
+        check(self.rays > 0, "tracking.rays", "must be positive")
+        check(self.lr_rotation >= 0 and self.lr_translation >= 0, "tracking.lr_rotation", "must be >= 0")
+        check(self.border >= 0, "tracking.border", "must be >= 0")
+        check(self.outlier_factor > 0, "tracking.outlier_factor", "must be positive")
+        self.weights.validate(check, "tracking.weights")
+
+
+@dataclass
+class MappingConfig:
+    every: int = 4  # a keyframe (and a mapping step) every this many frames
+    iterations: int = 15
+    rays: int = 4000
+    window: int = 20  # W: current frame + last two keyframes + W-3 overlapping keyframes
+    first_iterations: int = 1000
+    first_lr_factor: float = 5.0
+    lr_planes: float = 0.005
+    lr_decoders: float = 0.001
+    lr_poses: float = 0.001
+    joint_poses_after: int = 4  # window poses are optimised once this many keyframes exist
+    border: int = 0
+    weights: LossWeights = field(default_factory=LossWeights)
+
+    def validate(self, check) -> None:
+        check(self.every >= 1, "mapping.every", "must be >= 1")
+        check(self.iterations >= 0 and self.first_iterations >= 0, "mapping.iterations", "must be >= 0")
+        check(self.rays > 0, "mapping.rays", "must be positive")
+        check(self.window >= 3, "mapping.window", "must be >= 3 (current frame + last two keyframes)")
+        check(self.first_lr_factor > 0, "mapping.first_lr_factor", "must be positive")
+        check(min(self.lr_planes, self.lr_decoders, self.lr_poses) >= 0, "mapping.lr_planes", "must be >= 0")
+        check(self.border >= 0, "mapping.border", "must be >= 0")
+        self.weights.validate(check, "mapping.weights")
+
+
+@dataclass
+class MeshConfig:
+    resolution: float = 0.02  # marching-cubes voxel size (metres); re-mesh finer from a checkpoint
+    enabled: bool = True
+
+    def validate(self, check) -> None:
+        check(self.resolution > 0, "mesh.resolution", "must be positive (metres)")
+
+
+@dataclass
+class RunConfig:
+    seed: int = 0
+    threads: int = 0  # torch threads (0 = torch's default)
+
+    def validate(self, check) -> None:
+        check(self.threads >= 0, "run.threads", "must be >= 0")
+
+
+@dataclass
+class Config:
+    name: str = "eslam"
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+
+    def validate(self, source: str = "<config>") -> "Config":
+        def check(ok: bool, key: str, message: str) -> None:
+            if not ok:
+                raise ConfigError(f"{source}: invalid value for '{key}': {message}")
+
+        for f in dataclasses.fields(self):
+            section = getattr(self, f.name)
+            if dataclasses.is_dataclass(section):
+                section.validate(check)
+        return self
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+# ---------------------------------------------------------------------------------------------------------- loading
+
+PRESET_DIRS = [Path(__file__).resolve().parent.parent / "config"]
+
+
+def preset_path(name: str) -> Path:
+    """Path of a shipped preset (`replica`, `icl`, ...), looked up in the source tree or the installed package."""
+    for d in PRESET_DIRS:
+        p = d / f"{name}.yaml"
+        if p.exists():
+            return p
+    packaged = resources.files("eslam_core") / "presets" / f"{name}.yaml"
+    if packaged.is_file():
+        return Path(str(packaged))
+    raise ConfigError(f"unknown preset '{name}': give a path to a YAML file or one of {', '.join(list_presets())}")
+
+
+def list_presets() -> list[str]:
+    names = set()
+    for d in PRESET_DIRS:
+        names.update(p.stem for p in d.glob("*.yaml"))
+    packaged = resources.files("eslam_core") / "presets"
+    if packaged.is_dir():
+        names.update(Path(p.name).stem for p in packaged.iterdir() if p.name.endswith(".yaml"))
+    return sorted(names)
+
+
+def _deep_merge(base: dict, override: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in override.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _deep_merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def _read_yaml(path: Path, chain: tuple = ()) -> dict:
+    """The file's mapping with its `extends:` parents merged in (parents first)."""
+    if path in chain:
+        raise ConfigError(f"{path}: 'extends' forms a cycle: {' -> '.join(str(p) for p in chain + (path,))}")
+    if not path.exists():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of sections (camera:, model:, ...)")
+    parent = data.pop("extends", None)
+    if parent is None:
+        return data
+    parent_path = (path.parent / parent) if str(parent).endswith((".yaml", ".yml")) else preset_path(str(parent))
+    return _deep_merge(_read_yaml(parent_path.resolve(), chain + (path,)), data)
+
+
+def _coerce(value: Any, tp: Any, key: str, source: str) -> Any:
+    """Check `value` against the annotation `tp`, converting ints to floats where a float is expected."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _coerce(value, args[0], key, source)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{source}: '{key}' must be a mapping, got {type(value).__name__}")
+        return _build(tp, value, key, source)
+    if tp is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if tp is list or origin is list:
+        if not isinstance(value, list):
+            raise ConfigError(f"{source}: '{key}' must be a list, got {type(value).__name__}")
+        return value
+    if tp in (int, float, str, bool):
+        if not isinstance(value, tp) or (tp is int and isinstance(value, bool)):
+            raise ConfigError(f"{source}: '{key}' must be of type {tp.__name__}, got {value!r}")
+        return value
+    return value
+
+
+def _build(cls, data: dict, prefix: str, source: str):
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        where = f"{prefix}." if prefix else ""
+        raise ConfigError(f"{source}: unknown key '{where}{unknown[0]}' (known keys here: {', '.join(sorted(names))})")
+    kwargs = {}
+    for name, value in data.items():
+        key = f"{prefix}.{name}" if prefix else name
+        kwargs[name] = _coerce(value, hints[name], key, source)
+    return cls(**kwargs)
+
+
+def config_from_dict(data: dict, source: str = "<dict>") -> Config:
+    return _build(Config, data, "", source).validate(source)
+
+
+def load_config(path_or_preset: str | Path, overrides: Optional[dict] = None) -> Config:
+    """Load a YAML file (or a shipped preset by name), apply `overrides` (nested dict), validate."""
+    p = Path(path_or_preset)
+    if not p.exists() and p.suffix not in (".yaml", ".yml"):
+        p = preset_path(str(path_or_preset))
+    data = _read_yaml(p.resolve())
+    if overrides:
+        data = _deep_merge(data, overrides)
+    return config_from_dict(data, str(p))
+
+
+def save_config(config: Config, path: Path) -> None:
+    path.write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))

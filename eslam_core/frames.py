@@ -1,0 +1,58 @@
+"""Input frames turned into the tensors the method works on (resizing, depth cut)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import torch
+from PIL import Image
+
+from .camera import Frame, Intrinsics
+from .config import CameraConfig
+
+
+@dataclass
+class PreparedFrame:
+    index: int
+    timestamp: float
+    rgb: torch.Tensor  # (H, W, 3) float32 in [0, 1]
+    depth: torch.Tensor  # (H, W) float32 metres, 0 = missing
+    gt_pose: Optional[np.ndarray]
+
+
+def working_intrinsics(intr: Intrinsics, cam: CameraConfig) -> Intrinsics:
+    return intr if cam.image_scale == 1.0 else intr.scaled(cam.image_scale)
+
+
+def prepare_frame(frame: Frame, intr: Intrinsics, cam: CameraConfig) -> PreparedFrame:
+    """Check the frame against the camera, resize it to the working resolution and cut far depth."""
+    rgb, depth = frame.rgb, frame.depth
+    if rgb.shape[:2] != depth.shape or rgb.shape[:2] != (intr.height, intr.width):
+        raise ValueError(f"frame {frame.index}: image sizes rgb {rgb.shape[:2]} / depth {depth.shape} do not match "
+                         f"the camera ({intr.height}, {intr.width}); check the camera section of the config")
+    work = working_intrinsics(intr, cam)
+    if (work.width, work.height) != (intr.width, intr.height):
+        rgb = np.asarray(Image.fromarray(rgb).resize((work.width, work.height), Image.BILINEAR))
+        # Nearest neighbour for depth: averaging across a depth edge would invent surfaces in between.
+        depth = np.asarray(Image.fromarray(depth).resize((work.width, work.height), Image.NEAREST))
+    depth = np.nan_to_num(depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    depth[depth < 0] = 0
+    if cam.max_depth > 0:
+        depth[depth > cam.max_depth] = 0
+    return PreparedFrame(frame.index, frame.timestamp, torch.from_numpy(rgb.astype(np.float32) / 255.0),
+                         torch.from_numpy(depth), frame.pose)
+
+
+def pixel_directions_table(intr: Intrinsics) -> torch.Tensor:
+    """(H*W, 3) camera-frame ray directions with unit z, row-major pixel order."""
+    v, u = torch.meshgrid(torch.arange(intr.height, dtype=torch.float32),
+                          torch.arange(intr.width, dtype=torch.float32), indexing="ij")
+    return torch.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, torch.ones_like(u)], -1).reshape(-1, 3)
+
+
+def border_mask(height: int, width: int, border: int) -> torch.Tensor:
+    m = torch.zeros(height, width, dtype=torch.bool)
+    b = min(border, (min(height, width) - 1) // 2)
+    m[b: height - b, b: width - b] = True
+    return m

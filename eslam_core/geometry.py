@@ -1,0 +1,82 @@
+"""Rigid-body math on torch tensors: quaternions (w, x, y, z), pose parameters, camera rays.
+
+ESLAM optimises a camera pose as a translation and a quaternion with Adam, no manifold operations (paper Sec. 3.4).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """(..., 4) quaternion (w, x, y, z), not necessarily unit -> (..., 3, 3) rotation."""
+    q = q / q.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(q.shape[:-1] + (3, 3))
+
+
+def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotation -> (..., 4) unit quaternion (w, x, y, z) with w >= 0 (numerically stable branch choice)."""
+    m = R.reshape(-1, 3, 3)
+    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    # Four candidate formulas; each is accurate when its denominator is large, so take the largest.
+    cands = torch.stack(
+        [
+            torch.stack([1 + tr, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], -1),
+            torch.stack([m[:, 2, 1] - m[:, 1, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
+                         m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0]], -1),
+            torch.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0],
+                         1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], m[:, 1, 2] + m[:, 2, 1]], -1),
+            torch.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1],
+                         1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], -1),
+        ],
+        dim=1,
+    )
+    diag = torch.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], -1)
+    best = diag.argmax(-1)
+    q = cands[torch.arange(len(m)), best]
+    q = q / q.norm(dim=-1, keepdim=True)
+    q = torch.where(q[:, :1] < 0, -q, q)
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+def pose_to_params(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(..., 4, 4) camera-to-world -> translation (..., 3), quaternion (..., 4)."""
+    return T[..., :3, 3].clone(), matrix_to_quaternion(T[..., :3, :3])
+
+
+def params_to_pose(t: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Translation (..., 3) and quaternion (..., 4) -> (..., 4, 4) camera-to-world (differentiable)."""
+    R = quaternion_to_matrix(q)
+    top = torch.cat([R, t.unsqueeze(-1)], dim=-1)
+    bottom = torch.zeros(top.shape[:-2] + (1, 4), dtype=top.dtype, device=top.device)
+    bottom[..., 0, 3] = 1
+    return torch.cat([top, bottom], dim=-2)
+
+
+def pixel_directions(u: torch.Tensor, v: torch.Tensor, fx: float, fy: float, cx: float, cy: float) -> torch.Tensor:
+    """Camera-frame ray directions with unit z, so that a point at planar depth z is `z * direction`."""
+    return torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], dim=-1)
+
+
+def rays_to_world(dirs_cam: torch.Tensor, c2w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Origins and directions in the world for (N,3) camera directions and (N,4,4) or (4,4) poses."""
+    if c2w.dim() == 2:
+        return c2w[:3, 3].expand(len(dirs_cam), 3), dirs_cam @ c2w[:3, :3].T
+    return c2w[:, :3, 3], torch.einsum("nij,nj->ni", c2w[:, :3, :3], dirs_cam)
+
+
+def relative_motion(T_prev: np.ndarray, T_cur: np.ndarray) -> np.ndarray:
+    """Motion from the previous to the current camera, expressed in the previous camera's frame."""
+    return np.linalg.inv(T_prev) @ T_cur
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))

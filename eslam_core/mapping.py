@@ -1,0 +1,78 @@
+"""Mapping (paper Sec. 3.4): jointly optimise feature planes, decoders and the poses of a keyframe window.
+
+Rays are drawn equally from every window frame. Window poses are optimised once `joint_poses_after` keyframes
+exist, the oldest frame of the window held fixed (it anchors the gauge). The first frame is mapped alone with its
+pose fixed, for more iterations at a higher learning rate.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .config import Config
+from .field import SceneField
+from .frames import border_mask
+from .geometry import params_to_pose, pose_to_params
+from .keyframes import Keyframe
+from .losses import eslam_losses
+from .rendering import render_rays
+
+
+@dataclass
+class MappingResult:
+    loss: float
+    refined: dict  # keyframe position -> refined (4, 4) pose
+
+
+class Mapper:
+    def __init__(self, cfg: Config, dirs_cam: torch.Tensor, height: int, width: int):
+        self.cfg = cfg
+        self.dirs_cam = dirs_cam
+        self.border = border_mask(height, width, cfg.mapping.border).reshape(-1)
+
+    def _pixels(self, kf: Keyframe, n: int) -> torch.Tensor:
+        candidates = torch.nonzero(self.border & kf.usable.reshape(-1)).squeeze(1)
+        if len(candidates) == 0:
+            return candidates
+        return candidates[torch.randint(len(candidates), (n,))]
+
+    def map(self, field: SceneField, keyframes: list[Keyframe], window: list[int], first: bool = False,
+            optimise_poses: bool = False) -> MappingResult:
+        mc = self.cfg.mapping
+        iterations = mc.first_iterations if first else mc.iterations
+        lr_factor = mc.first_lr_factor if first else 1.0
+        oldest = min(window, key=lambda i: keyframes[i].frame_index)
+        free = [i for i in window if optimise_poses and i != oldest]
+        pose_params = {i: [p.requires_grad_(True) for p in pose_to_params(keyframes[i].pose)] for i in free}
+        groups = [{"params": field.decoder_parameters(), "lr": mc.lr_decoders * lr_factor},
+                  {"params": field.plane_parameters(), "lr": mc.lr_planes * lr_factor}]
+        if pose_params:
+            groups.append({"params": [p for tq in pose_params.values() for p in tq], "lr": mc.lr_poses})
+        optim = torch.optim.Adam(groups, betas=(0.9, 0.999))
+        per_frame = max(1, mc.rays // len(window))
+        loss_value = float("nan")
+        for _ in range(iterations):
+            origins, dirs, d_gt, rgb_gt = [], [], [], []
+            for i in window:
+                kf = keyframes[i]
+                pix = self._pixels(kf, per_frame)
+                if len(pix) == 0:
+                    continue
+                c2w = params_to_pose(*pose_params[i]) if i in pose_params else kf.pose
+                dirs.append(self.dirs_cam[pix] @ c2w[:3, :3].T)
+                origins.append(c2w[:3, 3].expand(len(pix), 3))
+                d_gt.append(kf.depths(pix))
+                rgb_gt.append(kf.colors(pix))
+            if not dirs:
+                break
+            d_gt_all = torch.cat(d_gt)
+            out = render_rays(field, torch.cat(origins), torch.cat(dirs), d_gt_all, self.cfg.render,
+                              self.cfg.model.truncation)
+            loss = eslam_losses(out, d_gt_all, torch.cat(rgb_gt), self.cfg.model.truncation).total(mc.weights)
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            optim.step()
+            loss_value = loss.item()
+        refined = {i: params_to_pose(*pose_params[i]).detach() for i in free}
+        return MappingResult(loss_value, refined)

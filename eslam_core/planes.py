@@ -1,0 +1,105 @@
+"""Multi-scale axis-aligned feature planes (paper Sec. 3.1).
+
+A field (geometry or appearance) has three planes (xy, xz, yz) at a coarse and a fine scale. The feature of a point
+is the bilinear interpolation on each plane, summed over the three planes of a scale and concatenated over the two
+scales: f(p) = [F_xy^c(p) + F_xz^c(p) + F_yz^c(p) ; F_xy^f(p) + F_xz^f(p) + F_yz^f(p)].
+
+All six planes of a field are stored as one table of feature rows (one row per plane cell, `channels` columns), so
+the whole lookup is a single `embedding_bag`: for each point and scale, a bag of 3 planes x 4 bilinear corners = 12
+rows with their bilinear weights. This equals grid_sample with align_corners=True and border padding, in one fused
+kernel whose backward also gives the gradient with respect to the point positions (through the weights), which
+tracking needs.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+PLANE_AXES = ((0, 1), (0, 2), (1, 2))  # xy, xz, yz: (column axis, row axis) of each plane
+
+
+@dataclass(frozen=True)
+class PlaneLayout:
+    """Where each plane of each scale lives in the shared table."""
+
+    sizes: tuple  # per scale: number of grid points along x, y, z
+    offsets: tuple  # per scale, per plane: first row of that plane in the table
+    rows: int
+
+    @staticmethod
+    def for_bound(bound: np.ndarray, resolutions: tuple[float, ...]) -> "PlaneLayout":
+        extent = bound[1] - bound[0]
+        sizes, offsets, row = [], [], 0
+        for res in resolutions:
+            n = tuple(int(max(2, round(e / res) + 1)) for e in extent)
+            sizes.append(n)
+            scale_offsets = []
+            for a, b in PLANE_AXES:
+                scale_offsets.append(row)
+                row += n[a] * n[b]
+            offsets.append(tuple(scale_offsets))
+        return PlaneLayout(tuple(sizes), tuple(offsets), row)
+
+
+def bilinear_bags(points: torch.Tensor, bound_min: torch.Tensor, bound_extent: torch.Tensor,
+                  layout: PlaneLayout) -> tuple[torch.Tensor, torch.Tensor]:
+    """Table rows and bilinear weights of every point: (N * scales, 12) indices and weights.
+
+    Coordinates are clamped to the bound (border padding), so points outside read the border features.
+    """
+    unit = ((points - bound_min) / bound_extent).clamp(0.0, 1.0)  # (N, 3) in [0, 1]
+    all_idx, all_w = [], []
+    for n, offsets in zip(layout.sizes, layout.offsets):
+        sizes = torch.tensor(n, dtype=points.dtype, device=points.device)
+        g = unit * (sizes - 1)  # grid coordinates, align_corners=True
+        base = torch.minimum(g.detach().floor(), sizes - 2)  # lower corner; keeps the upper corner in range
+        frac = g - base  # differentiable in the point position
+        base = base.long()
+        idx_s, w_s = [], []
+        for (a, b), off in zip(PLANE_AXES, offsets):
+            i0, j0 = base[:, a], base[:, b]
+            fa, fb = frac[:, a], frac[:, b]
+            row0 = off + j0 * n[a] + i0  # plane stored row-major: row index along axis b, column along axis a
+            idx_s.append(torch.stack([row0, row0 + 1, row0 + n[a], row0 + n[a] + 1], dim=-1))
+            w_s.append(torch.stack([(1 - fa) * (1 - fb), fa * (1 - fb), (1 - fa) * fb, fa * fb], dim=-1))
+        all_idx.append(torch.cat(idx_s, dim=-1))
+        all_w.append(torch.cat(w_s, dim=-1))
+    # (N, scales, 12) -> (N * scales, 12): bag k of point i is row i * scales + k, so the output reshapes to
+    # (N, scales * channels) = the concatenation over scales.
+    idx = torch.stack(all_idx, dim=1).reshape(-1, 12)
+    w = torch.stack(all_w, dim=1).reshape(-1, 12)
+    return idx, w
+
+
+class FeaturePlanes(nn.Module):
+    """The coarse and fine xy / xz / yz planes of one field, as a single table of feature rows."""
+
+    def __init__(self, bound: np.ndarray, resolutions: tuple[float, ...], channels: int, init_std: float):
+        super().__init__()
+        self.layout = PlaneLayout.for_bound(bound, resolutions)
+        self.resolutions = tuple(resolutions)
+        self.channels = channels
+        self.table = nn.Parameter(torch.randn(self.layout.rows, channels) * init_std)
+        self.register_buffer("bound_min", torch.tensor(bound[0], dtype=torch.float32))
+        self.register_buffer("bound_extent", torch.tensor(bound[1] - bound[0], dtype=torch.float32))
+
+    @property
+    def out_dim(self) -> int:
+        return self.channels * len(self.resolutions)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        """(N, 3) world points -> (N, scales * channels) features."""
+        idx, w = bilinear_bags(points, self.bound_min, self.bound_extent, self.layout)
+        feats = F.embedding_bag(idx, self.table, per_sample_weights=w, mode="sum")
+        return feats.reshape(len(points), self.out_dim)
+
+    def plane(self, scale: int, which: int) -> torch.Tensor:
+        """One plane as a (channels, rows, cols) image (for inspection and tests)."""
+        a, b = PLANE_AXES[which]
+        n = self.layout.sizes[scale]
+        off = self.layout.offsets[scale][which]
+        return self.table[off: off + n[a] * n[b]].reshape(n[b], n[a], self.channels).permute(2, 0, 1)

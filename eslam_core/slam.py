@@ -1,0 +1,192 @@
+"""The SLAM system: the map, the keyframe list and the trajectory, advanced one frame at a time.
+
+This is the single-process, lock-step schedule of the method: track every frame against the current map, and every
+`mapping.every` frames make the frame a keyframe and run a mapping step. Refined keyframe poses are written back into
+the trajectory: each frame's pose is stored relative to the keyframe it was tracked after, so a keyframe correction
+moves the frames that depend on it too.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import torch
+
+from .bounds import estimate_bound, grow_to_multiple, outside_mask
+from .camera import Frame, Intrinsics
+from .config import Config, config_from_dict
+from .field import SceneField
+from .frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
+from .keyframes import Keyframe, select_window
+from .mapping import Mapper
+from .tracking import Tracker, constant_velocity
+
+log = logging.getLogger("eslam")
+
+CHECKPOINT_VERSION = 1
+
+
+@dataclass
+class FrameRecord:
+    index: int
+    timestamp: float
+    reference: int  # position of the keyframe this frame's pose is relative to
+    relative: np.ndarray  # 4x4: pose = keyframes[reference].pose @ relative
+    tracking_loss: float
+    gt_pose: Optional[np.ndarray]
+
+
+@dataclass
+class StepResult:
+    index: int
+    pose: np.ndarray
+    tracking_loss: float
+    keyframe: bool
+    mapping_loss: float
+
+
+class SLAM:
+    def __init__(self, cfg: Config, intrinsics: Intrinsics):
+        self.cfg = cfg
+        self.input_intrinsics = intrinsics
+        self.intr = working_intrinsics(intrinsics, cfg.camera)
+        self.dirs_cam = pixel_directions_table(self.intr)
+        self.tracker = Tracker(cfg, self.dirs_cam, self.intr.height, self.intr.width)
+        self.mapper = Mapper(cfg, self.dirs_cam, self.intr.height, self.intr.width)
+        self.field: Optional[SceneField] = None
+        self.bound: Optional[np.ndarray] = None
+        self.keyframes: list[Keyframe] = []
+        self.records: list[FrameRecord] = []
+        self.points_outside = 0
+        self.points_seen = 0
+        self._warned_outside = 0.0
+        self.rng = np.random.default_rng(cfg.run.seed)
+
+    # ------------------------------------------------------------------------------------------------ trajectory
+    def pose(self, k: int) -> np.ndarray:
+        r = self.records[k]
+        return self.keyframes[r.reference].pose.double().numpy() @ r.relative
+
+    def poses(self) -> np.ndarray:
+        return np.stack([self.pose(k) for k in range(len(self.records))]) if self.records else np.zeros((0, 4, 4))
+
+    def timestamps(self) -> np.ndarray:
+        return np.array([r.timestamp for r in self.records])
+
+    def gt_poses(self) -> list:
+        return [r.gt_pose for r in self.records]
+
+    # ---------------------------------------------------------------------------------------------------- frames
+    def step(self, frame: Frame) -> StepResult:
+        pf = prepare_frame(frame, self.input_intrinsics, self.cfg.camera)
+        if self.field is None:
+            return self._first_frame(pf)
+        n = len(self.records)
+        prev2 = self.pose(n - 2) if n >= 2 and self.cfg.tracking.constant_velocity else None
+        init = torch.from_numpy(constant_velocity(prev2, self.pose(n - 1))).float()
+        usable = self._usable_pixels(pf, init, count=False)
+        result = self.tracker.track(self.field, pf, init, usable)
+        pose = result.pose
+        usable = self._usable_pixels(pf, pose, count=True)
+        is_keyframe = n % self.cfg.mapping.every == 0
+        mapping_loss = float("nan")
+        if is_keyframe:
+            self.keyframes.append(Keyframe.from_tensors(pf.index, pf.timestamp, pf.rgb, pf.depth, usable, pose))
+            self._record(pf, len(self.keyframes) - 1, np.eye(4), result.loss)
+            mapping_loss = self._map_current()
+        else:
+            ref = len(self.keyframes) - 1
+            rel = np.linalg.inv(self.keyframes[ref].pose.double().numpy()) @ pose.double().numpy()
+            self._record(pf, ref, rel, result.loss)
+        return StepResult(pf.index, self.pose(n), result.loss, is_keyframe, mapping_loss)
+
+    def _record(self, pf: PreparedFrame, ref: int, rel: np.ndarray, loss: float) -> None:
+        self.records.append(FrameRecord(pf.index, pf.timestamp, ref, rel, loss, pf.gt_pose))
+
+    def _first_frame(self, pf: PreparedFrame) -> StepResult:
+        """Fix the first pose (ground truth when known, so outputs share its frame), set the bound, map the frame."""
+        pose0 = pf.gt_pose if pf.gt_pose is not None else np.eye(4)
+        self.bound = self._scene_bound(pf, pose0)
+        self.field = SceneField(self.bound, self.cfg.model)
+        log.info("map: %d parameters over bound %s", self.field.parameter_count(), np.round(self.bound, 3).tolist())
+        pose = torch.from_numpy(pose0).float()
+        usable = self._usable_pixels(pf, pose, count=True)
+        self.keyframes.append(Keyframe.from_tensors(pf.index, pf.timestamp, pf.rgb, pf.depth, usable, pose))
+        self._record(pf, 0, np.eye(4), 0.0)
+        res = self.mapper.map(self.field, self.keyframes, [0], first=True)
+        return StepResult(pf.index, pose0, 0.0, True, res.loss)
+
+    def _scene_bound(self, pf: PreparedFrame, pose0: np.ndarray) -> np.ndarray:
+        step = self.cfg.model.coarse_resolution
+        if self.cfg.scene.bound is not None:
+            return grow_to_multiple(np.array(self.cfg.scene.bound, dtype=np.float64), step)
+        bound = estimate_bound(pf.depth.numpy(), self.intr, pose0, self.cfg.scene.bound_margin, step)
+        log.info("scene bound estimated from the first frame (margin %.2f m): %s; set scene.bound in the config "
+                 "if the camera will see beyond it", self.cfg.scene.bound_margin, np.round(bound, 2).tolist())
+        return bound
+
+    def _usable_pixels(self, pf: PreparedFrame, pose: torch.Tensor, count: bool) -> torch.Tensor:
+        """Pixels whose measured surface lies inside the bound; the others are left out and counted."""
+        depth = pf.depth.reshape(-1)
+        points = self.dirs_cam * depth[:, None] @ pose[:3, :3].T + pose[:3, 3]
+        outside = torch.from_numpy(outside_mask(points.numpy(), self.bound)) & (depth > 0)
+        if count:
+            n_out, n_valid = int(outside.sum()), int((depth > 0).sum())
+            self.points_outside += n_out
+            self.points_seen += n_valid
+            frac = n_out / max(n_valid, 1)
+            if frac > 0.05 and frac > 2 * self._warned_outside:
+                self._warned_outside = frac
+                log.warning("frame %d: %.0f%% of its depth points lie outside the scene bound and are not mapped "
+                            "(%d so far); set scene.bound (or a larger scene.bound_margin) in the config",
+                            pf.index, 100 * frac, self.points_outside)
+        return ~outside.reshape(pf.depth.shape)
+
+    def _map_current(self) -> float:
+        current = len(self.keyframes) - 1
+        kf = self.keyframes[current]
+        d = kf.depth_image().reshape(-1)
+        with_depth = torch.nonzero(d > 0).squeeze(1)
+        sample = with_depth[torch.randint(len(with_depth), (min(len(with_depth), 500),))] if len(with_depth) else \
+            with_depth
+        points = self.dirs_cam[sample] * d[sample, None] @ kf.pose[:3, :3].T + kf.pose[:3, 3]
+        window = select_window(self.keyframes, current, points, self.intr, self.cfg.mapping.window, self.rng)
+        optimise_poses = len(self.keyframes) > self.cfg.mapping.joint_poses_after
+        res = self.mapper.map(self.field, self.keyframes, window, first=False, optimise_poses=optimise_poses)
+        for i, pose in res.refined.items():
+            self.keyframes[i].pose = pose.float()
+        return res.loss
+
+    # ------------------------------------------------------------------------------------------------ checkpoint
+    def state_dict(self) -> dict:
+        return {
+            "version": CHECKPOINT_VERSION,
+            "config": self.cfg.to_dict(),
+            "intrinsics": self.input_intrinsics.__dict__,
+            "bound": self.bound,
+            "field": self.field.state_dict() if self.field is not None else None,
+            "keyframes": [kf.__dict__ for kf in self.keyframes],
+            "records": [r.__dict__ for r in self.records],
+            "points_outside": self.points_outside,
+            "points_seen": self.points_seen,
+            "rng": self.rng.bit_generator.state,
+        }
+
+    @staticmethod
+    def from_state_dict(state: dict) -> "SLAM":
+        if state.get("version") != CHECKPOINT_VERSION:
+            raise ValueError(f"checkpoint version {state.get('version')} is not supported (expected "
+                             f"{CHECKPOINT_VERSION}); re-run `eslam run` to produce a new checkpoint")
+        slam = SLAM(config_from_dict(state["config"], "checkpoint"), Intrinsics(**state["intrinsics"]))
+        slam.bound = np.asarray(state["bound"]) if state["bound"] is not None else None
+        if state["field"] is not None:
+            slam.field = SceneField(slam.bound, slam.cfg.model)
+            slam.field.load_state_dict(state["field"])
+        slam.keyframes = [Keyframe(**kf) for kf in state["keyframes"]]
+        slam.records = [FrameRecord(**r) for r in state["records"]]
+        slam.points_outside = state["points_outside"]
+        slam.points_seen = state["points_seen"]
+        slam.rng.bit_generator.state = state["rng"]
+        return slam

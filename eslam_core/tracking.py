@@ -1,0 +1,91 @@
+"""Camera tracking (paper Sec. 3.4): optimise the pose of a frame against the fixed map.
+
+Translation and quaternion are optimised with Adam on ESLAM's loss (tracking weights), starting from a constant-
+velocity prediction. Each iteration renders rays from random pixels with depth inside the image border, drops rays
+whose depth error exceeds `outlier_factor` times the batch median, and the pose with the lowest loss over all
+iterations is kept, not the last one.
+"""
+from __future__ import annotations
+
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .config import Config
+from .field import SceneField
+from .frames import PreparedFrame, border_mask
+from .geometry import params_to_pose, pose_to_params, rays_to_world
+from .losses import eslam_losses
+from .rendering import render_rays
+
+
+@dataclass
+class TrackingResult:
+    pose: torch.Tensor  # (4, 4) camera-to-world
+    loss: float  # best loss over the iterations
+    rays: int  # rays per iteration after dropping those without depth
+
+
+@contextmanager
+def frozen(module: torch.nn.Module):
+    """Temporarily stop gradients into a module's parameters (the map is fixed while tracking)."""
+    flags = [(p, p.requires_grad) for p in module.parameters()]
+    for p, _ in flags:
+        p.requires_grad_(False)
+    try:
+        yield module
+    finally:
+        for p, flag in flags:
+            p.requires_grad_(flag)
+
+
+def constant_velocity(prev2: np.ndarray | None, prev: np.ndarray) -> np.ndarray:
+    """Predict the next pose by repeating the last relative motion."""
+    if prev2 is None:
+        return prev.copy()
+    return prev @ (np.linalg.inv(prev2) @ prev)
+
+
+def outlier_mask(depth_error: torch.Tensor, factor: float) -> torch.Tensor:
+    return depth_error < factor * depth_error.median()
+
+
+class Tracker:
+    def __init__(self, cfg: Config, dirs_cam: torch.Tensor, height: int, width: int):
+        self.cfg = cfg
+        self.dirs_cam = dirs_cam  # (H*W, 3)
+        self.border = border_mask(height, width, cfg.tracking.border).reshape(-1)
+
+    def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
+              usable: torch.Tensor | None = None) -> TrackingResult:
+        tc = self.cfg.tracking
+        valid = self.border & (frame.depth.reshape(-1) > 0)
+        if usable is not None:
+            valid &= usable.reshape(-1)
+        candidates = torch.nonzero(valid).squeeze(1)
+        if len(candidates) < 10 or tc.iterations == 0:
+            return TrackingResult(init_pose.clone(), float("nan"), len(candidates))
+        t, q = pose_to_params(init_pose)
+        t.requires_grad_(True)
+        q.requires_grad_(True)
+        optim = torch.optim.Adam([{"params": [t], "lr": tc.lr_translation}, {"params": [q], "lr": tc.lr_rotation}],
+                                 betas=(0.5, 0.999))
+        rgb, depth = frame.rgb.reshape(-1, 3), frame.depth.reshape(-1)
+        best_loss, best_pose = float("inf"), init_pose.clone()
+        with frozen(field):
+            for _ in range(tc.iterations):
+                pix = candidates[torch.randint(len(candidates), (tc.rays,))]
+                c2w = params_to_pose(t, q)
+                origins, dirs = rays_to_world(self.dirs_cam[pix], c2w)
+                d_gt = depth[pix]
+                out = render_rays(field, origins, dirs, d_gt, self.cfg.render, self.cfg.model.truncation)
+                keep = outlier_mask((out.depth.detach() - d_gt).abs(), tc.outlier_factor)
+                loss = eslam_losses(out, d_gt, rgb[pix], self.cfg.model.truncation, keep).total(tc.weights)
+                if loss.item() < best_loss:
+                    best_loss, best_pose = loss.item(), c2w.detach().clone()
+                optim.zero_grad(set_to_none=True)
+                loss.backward()
+                optim.step()
+        return TrackingResult(best_pose, best_loss, len(candidates))
