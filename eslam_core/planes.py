@@ -4,20 +4,24 @@ A field (geometry or appearance) has three planes (xy, xz, yz) at a coarse and a
 is the bilinear interpolation on each plane, summed over the three planes of a scale and concatenated over the two
 scales: f(p) = [F_xy^c(p) + F_xz^c(p) + F_yz^c(p) ; F_xy^f(p) + F_xz^f(p) + F_yz^f(p)].
 
-All six planes of a field are stored as one table of feature rows (one row per plane cell, `channels` columns), so
-the whole lookup is a single `embedding_bag`: for each point and scale, a bag of 3 planes x 4 bilinear corners = 12
-rows with their bilinear weights. This equals grid_sample with align_corners=True and border padding, in one fused
-kernel whose backward also gives the gradient with respect to the point positions (through the weights), which
-tracking needs.
+All six planes of a field are stored as one table of feature rows (one row per plane cell, `channels` columns).
+The lookup equals grid_sample with align_corners=True and border padding on each plane. It runs as one fused C
+kernel (kernels/plane_lookup.c) whose backward gives the gradients of the table and of the point positions (which
+tracking needs). `reference_lookup` is the same computation in plain torch (an `embedding_bag` over bags of 3 planes
+x 4 bilinear corners): the fallback without a C compiler, and the reference the kernel is tested against.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import ctypes
+
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from .native import load_kernel
 
 PLANE_AXES = ((0, 1), (0, 2), (1, 2))  # xy, xz, yz: (column axis, row axis) of each plane
 
@@ -75,6 +79,53 @@ def bilinear_bags(points: torch.Tensor, bound_min: torch.Tensor, bound_extent: t
     return idx, w
 
 
+def reference_lookup(points: torch.Tensor, table: torch.Tensor, bound_min: torch.Tensor, bound_extent: torch.Tensor,
+                     layout: PlaneLayout) -> torch.Tensor:
+    """(N, 3) points -> (N, scales * channels) features, in plain torch."""
+    idx, w = bilinear_bags(points, bound_min, bound_extent, layout)
+    return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum").reshape(len(points), -1)
+
+
+def _ptr(t: torch.Tensor) -> ctypes.c_void_p:
+    return ctypes.c_void_p(t.data_ptr())
+
+
+class _FusedLookup(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, points, table, sizes, offsets, bound_min, bound_extent, lib):
+        points = points.contiguous()
+        n, channels = len(points), table.shape[1]
+        scales = len(sizes) // 3
+        out = torch.empty(n, scales * channels)
+        threads = torch.get_num_threads()
+        lib.plane_forward(_ptr(points), ctypes.c_int64(n), _ptr(table), ctypes.c_int64(channels),
+                          ctypes.c_int64(scales), _ptr(sizes), _ptr(offsets), _ptr(bound_min), _ptr(bound_extent),
+                          _ptr(out), ctypes.c_int(threads))
+        ctx.save_for_backward(points, table, sizes, offsets, bound_min, bound_extent)
+        ctx.lib = lib
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        points, table, sizes, offsets, bound_min, bound_extent = ctx.saved_tensors
+        grad_out = grad_out.contiguous()
+        n, channels = len(points), table.shape[1]
+        scales = len(sizes) // 3
+        threads = ctypes.c_int(torch.get_num_threads())
+        common = (ctypes.c_int64(scales), _ptr(sizes), _ptr(offsets), _ptr(bound_min), _ptr(bound_extent),
+                  _ptr(grad_out))
+        grad_points = grad_table = None
+        if ctx.needs_input_grad[0]:
+            grad_points = torch.zeros_like(points)
+            ctx.lib.plane_backward_points(_ptr(points), ctypes.c_int64(n), _ptr(table), ctypes.c_int64(channels),
+                                          *common, _ptr(grad_points), threads)
+        if ctx.needs_input_grad[1]:
+            grad_table = torch.zeros_like(table)
+            ctx.lib.plane_backward_table(_ptr(points), ctypes.c_int64(n), ctypes.c_int64(table.shape[0]),
+                                         ctypes.c_int64(channels), *common, _ptr(grad_table), threads)
+        return grad_points, grad_table, None, None, None, None, None
+
+
 class FeaturePlanes(nn.Module):
     """The coarse and fine xy / xz / yz planes of one field, as a single table of feature rows."""
 
@@ -86,6 +137,9 @@ class FeaturePlanes(nn.Module):
         self.table = nn.Parameter(torch.randn(self.layout.rows, channels) * init_std)
         self.register_buffer("bound_min", torch.tensor(bound[0], dtype=torch.float32))
         self.register_buffer("bound_extent", torch.tensor(bound[1] - bound[0], dtype=torch.float32))
+        self._sizes = torch.tensor([v for n in self.layout.sizes for v in n], dtype=torch.int64)
+        self._offsets = torch.tensor([v for o in self.layout.offsets for v in o], dtype=torch.int64)
+        self.use_native = True
 
     @property
     def out_dim(self) -> int:
@@ -93,9 +147,11 @@ class FeaturePlanes(nn.Module):
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """(N, 3) world points -> (N, scales * channels) features."""
-        idx, w = bilinear_bags(points, self.bound_min, self.bound_extent, self.layout)
-        feats = F.embedding_bag(idx, self.table, per_sample_weights=w, mode="sum")
-        return feats.reshape(len(points), self.out_dim)
+        lib = load_kernel("plane_lookup") if self.use_native else None
+        if lib is None or points.dtype != torch.float32 or self.table.dtype != torch.float32:
+            return reference_lookup(points, self.table, self.bound_min, self.bound_extent, self.layout)
+        return _FusedLookup.apply(points, self.table, self._sizes, self._offsets, self.bound_min,
+                                  self.bound_extent, lib)
 
     def plane(self, scale: int, which: int) -> torch.Tensor:
         """One plane as a (channels, rows, cols) image (for inspection and tests)."""

@@ -165,10 +165,13 @@ class SLAM:
             "version": CHECKPOINT_VERSION,
             "config": self.cfg.to_dict(),
             "intrinsics": self.input_intrinsics.__dict__,
-            "bound": self.bound,
+            "bound": None if self.bound is None else torch.from_numpy(self.bound),
             "field": self.field.state_dict() if self.field is not None else None,
-            "keyframes": [kf.__dict__ for kf in self.keyframes],
-            "records": [r.__dict__ for r in self.records],
+            "keyframes": [dict(kf.__dict__) for kf in self.keyframes],
+            # Tensors, not numpy arrays, so that checkpoints load with torch.load(weights_only=True).
+            "records": [dict(r.__dict__, relative=torch.from_numpy(r.relative),
+                             gt_pose=None if r.gt_pose is None else torch.from_numpy(r.gt_pose))
+                        for r in self.records],
             "points_outside": self.points_outside,
             "points_seen": self.points_seen,
             "rng": self.rng.bit_generator.state,
@@ -180,12 +183,14 @@ class SLAM:
             raise ValueError(f"checkpoint version {state.get('version')} is not supported (expected "
                              f"{CHECKPOINT_VERSION}); re-run `eslam run` to produce a new checkpoint")
         slam = SLAM(config_from_dict(state["config"], "checkpoint"), Intrinsics(**state["intrinsics"]))
-        slam.bound = np.asarray(state["bound"]) if state["bound"] is not None else None
+        slam.bound = state["bound"].numpy() if state["bound"] is not None else None
         if state["field"] is not None:
             slam.field = SceneField(slam.bound, slam.cfg.model)
             slam.field.load_state_dict(state["field"])
         slam.keyframes = [Keyframe(**kf) for kf in state["keyframes"]]
-        slam.records = [FrameRecord(**r) for r in state["records"]]
+        slam.records = [FrameRecord(**dict(r, relative=r["relative"].numpy(),
+                                           gt_pose=None if r["gt_pose"] is None else r["gt_pose"].numpy()))
+                        for r in state["records"]]
         slam.points_outside = state["points_outside"]
         slam.points_seen = state["points_seen"]
         slam.rng.bit_generator.state = state["rng"]

@@ -1,0 +1,156 @@
+"""The `eslam` command: run, demo, mesh, eval."""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import Optional, Sequence
+
+import yaml
+
+from .camera import Intrinsics
+
+log = logging.getLogger("eslam")
+
+
+def parse_frames(text: str) -> tuple[int, Optional[int]]:
+    """'A:B' (either side optional) -> (start, stop)."""
+    try:
+        a, _, b = text.partition(":")
+        return (int(a) if a else 0, int(b) if b else None)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--frames expects A:B (e.g. 0:100 or 50:), got {text!r}") from None
+
+
+def parse_overrides(items: Sequence[str]) -> dict:
+    """['tracking.iterations=4', ...] -> nested dict, values parsed as YAML."""
+    out: dict = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise argparse.ArgumentTypeError(f"--set expects section.key=value, got {item!r}")
+        node = out
+        parts = key.split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = yaml.safe_load(value)
+    return out
+
+
+def _camera_override(cfg) -> Optional[Intrinsics]:
+    c = cfg.camera
+    if c.fx is None:
+        return None
+    return Intrinsics(c.width, c.height, c.fx, c.fy, c.cx, c.cy)
+
+
+def open_configured_dataset(cfg, data: Path, frames: tuple, stride: int):
+    from .datasets import open_dataset
+
+    ds = open_dataset(data, cfg.dataset.kind, intrinsics=_camera_override(cfg), depth_scale=cfg.camera.depth_scale)
+    return ds.subset(frames[0], frames[1], stride)
+
+
+def cmd_run(args) -> int:
+    from .config import load_config
+    from .runner import run_sequence
+
+    cfg = load_config(args.config, parse_overrides(args.set))
+    ds = open_configured_dataset(cfg, Path(args.data), args.frames, args.stride)
+    s = run_sequence(cfg, ds, Path(args.out), data_label=str(Path(args.data).resolve()),
+                     frames=(args.frames[0], args.frames[1], args.stride), resume=args.resume,
+                     progress=not args.quiet, write_mesh=not args.no_mesh)
+    ate = "n/a (no ground truth)" if s.ate_rmse_cm is None else f"{s.ate_rmse_cm:.2f} cm"
+    print(f"{s.n_frames} frames, {s.seconds_per_frame:.2f} s/frame, ATE RMSE {ate}, "
+          f"peak memory {s.peak_memory_mb:.0f} MB -> {s.out_dir}")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from .config import load_config
+    from .demo import run_demo
+
+    cfg = load_config("demo", parse_overrides(args.set))
+    run_demo(cfg, Path(args.out), n_frames=args.frames, size=args.size, cache=args.cache, progress=not args.quiet)
+    return 0
+
+
+def cmd_mesh(args) -> int:
+    from .export import load_checkpoint, map_mesh
+    from .mesh import save_ply
+
+    slam = load_checkpoint(Path(args.checkpoint))
+    out = Path(args.out) if args.out else Path(args.checkpoint).with_name(f"mesh_{args.resolution:g}.ply")
+    path = save_ply(map_mesh(slam, args.resolution), out)
+    print(f"mesh at {args.resolution:g} m -> {path}")
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from .evaluation.cli import run_eval
+
+    return run_eval(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="eslam", description="ESLAM dense RGB-D SLAM (feature planes + TSDF)")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("run", help="run SLAM on a data set")
+    r.add_argument("--config", required=True, help="YAML file or preset name (replica, scannet, tum, icl, demo)")
+    r.add_argument("--data", required=True, help="data set folder (TUM, ICL-NUIM, Replica, ScanNet, 7-Scenes)")
+    r.add_argument("--out", required=True, help="output folder")
+    r.add_argument("--frames", type=parse_frames, default=(0, None), help="A:B, frames to run (default all)")
+    r.add_argument("--stride", type=int, default=1, help="use every N-th frame")
+    r.add_argument("--resume", type=Path, help="continue from a checkpoint.pt")
+    r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config value, e.g. --set tracking.iterations=4 (repeatable)")
+    r.add_argument("--no-mesh", action="store_true", help="skip mesh extraction")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(func=cmd_run)
+
+    d = sub.add_parser("demo", help="generate the embedded synthetic room (cached) and run on it")
+    d.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
+    d.add_argument("--frames", type=int, default=60, help="number of frames (default 60)")
+    d.add_argument("--size", default="320x240", help="image size WxH (default 320x240)")
+    d.add_argument("--cache", type=Path, default=None, help="scene cache folder (default ~/.cache/eslam/scenes)")
+    d.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config value")
+    d.add_argument("-q", "--quiet", action="store_true")
+    d.set_defaults(func=cmd_demo)
+
+    m = sub.add_parser("mesh", help="extract a mesh from a checkpoint at any resolution")
+    m.add_argument("checkpoint")
+    m.add_argument("--resolution", type=float, default=0.02, help="voxel size in metres (default 0.02)")
+    m.add_argument("--out", help="output PLY (default next to the checkpoint)")
+    m.set_defaults(func=cmd_mesh)
+
+    try:
+        from .evaluation.cli import add_eval_arguments
+    except ImportError:  # evaluation extras missing: the other commands still work
+        add_eval_arguments = None
+    if add_eval_arguments is not None:
+        e = sub.add_parser("eval", help="evaluate a run: ATE/RPE, reconstruction, depth L1, plots, report")
+        add_eval_arguments(e)
+        e.set_defaults(func=cmd_eval)
+    return p
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, FileNotFoundError) as e:
+        # Every input problem is raised as a ValueError subclass whose message names the problem and the fix.
+        print(f"eslam: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

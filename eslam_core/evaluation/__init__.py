@@ -1,0 +1,45 @@
+"""Evaluation of ESLAM runs with the NICE-SLAM / ESLAM protocol, headless on a CPU.
+
+- trajectory: TUM files, timestamp association, Umeyama alignment, ATE and RPE;
+- reconstruction: surface sampling, accuracy / completion / completion ratio, ICP, mesh checks;
+- depth_l1: depth of both meshes rendered from random views inside the scene;
+- plots, report, cli: figures, report.json / report.md for a run directory, and `eslam eval`
+  (imported on demand: `from eslam_core.evaluation.report import evaluate_run`).
+Culling of meshes to the observed surface lives in eslam_core.culling (mesh extraction uses it too).
+"""
+from .depth_l1 import DepthL1Result, depth_l1
+from .reconstruction import MeshError, ReconstructionResult, check_mesh, icp_align, load_mesh, reconstruction_metrics, sample_surface
+from .trajectory import (
+    AteResult,
+    RpeResult,
+    Trajectory,
+    TrajectoryError,
+    associate,
+    ate,
+    read_tum,
+    rpe,
+    umeyama_alignment,
+    write_tum,
+)
+
+__all__ = [
+    "AteResult",
+    "DepthL1Result",
+    "MeshError",
+    "ReconstructionResult",
+    "RpeResult",
+    "Trajectory",
+    "TrajectoryError",
+    "associate",
+    "ate",
+    "check_mesh",
+    "depth_l1",
+    "icp_align",
+    "load_mesh",
+    "reconstruction_metrics",
+    "read_tum",
+    "rpe",
+    "sample_surface",
+    "umeyama_alignment",
+    "write_tum",
+]

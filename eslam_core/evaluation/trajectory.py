@@ -1,0 +1,363 @@
+"""Camera trajectory metrics: ATE and RPE (Sturm et al., IROS 2012), as reported by NICE-SLAM and ESLAM.
+
+- ATE (absolute trajectory error): the estimated camera positions are rigidly aligned to the ground truth (Horn /
+  Umeyama: rotation + translation, no scale), then the per-frame position errors are summarised (RMSE, mean, ...).
+- RPE (relative pose error): the error of the motion between two poses `delta` apart (in frames, or ~`delta`
+  metres along the ground-truth path); it measures drift and needs no alignment.
+
+Everything here is in metres and radians internally; reports convert to cm and degrees.
+Trajectory files use the TUM format: `timestamp tx ty tz qx qy qz qw`, camera-to-world.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Union
+
+import numpy as np
+
+PathLike = Union[str, Path]
+
+
+class TrajectoryError(ValueError):
+    """A trajectory that cannot be read or compared (malformed file, non-finite pose, no common timestamps)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    timestamps: np.ndarray  # (N,) seconds (or frame numbers for data sets without a clock)
+    poses: np.ndarray  # (N, 4, 4) camera-to-world
+
+    def __post_init__(self) -> None:
+        timestamps = np.asarray(self.timestamps, dtype=np.float64)
+        poses = np.asarray(self.poses, dtype=np.float64)
+        if timestamps.ndim != 1 or poses.shape != (len(timestamps), 4, 4):
+            raise TrajectoryError(
+                f"a trajectory needs N timestamps and N 4x4 poses, got {timestamps.shape} and {poses.shape}"
+            )
+        bad = np.flatnonzero(~(np.isfinite(poses).all(axis=(1, 2)) & np.isfinite(timestamps)))
+        if bad.size:
+            raise TrajectoryError(
+                f"pose at timestamp {float(timestamps[bad[0]])!r} is not finite (nan/inf); {bad.size} such poses: "
+                "the estimator lost track there, remove or fix those poses"
+            )
+        object.__setattr__(self, "timestamps", timestamps)
+        object.__setattr__(self, "poses", poses)
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.poses[:, :3, 3]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Quaternions (x, y, z, w), Hamilton convention as in the TUM tools.
+
+
+def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4) given as (x, y, z, w)."""
+    x, y, z, w = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix.
+
+    Built from the largest of the four candidate components, so it stays accurate for all rotations.
+    """
+    r = np.asarray(rotation, dtype=np.float64)
+    trace = np.trace(r)
+    candidates = np.array([r[0, 0], r[1, 1], r[2, 2], trace])
+    largest = int(np.argmax(candidates))
+    if largest == 3:
+        w = 0.5 * np.sqrt(1.0 + trace)
+        q = np.array([(r[2, 1] - r[1, 2]), (r[0, 2] - r[2, 0]), (r[1, 0] - r[0, 1]), 0.0]) / (4 * w)
+        q[3] = w
+    else:
+        i = largest
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 0.5 * np.sqrt(max(1.0 + r[i, i] - r[j, j] - r[k, k], 0.0))
+        q = np.zeros(4)
+        q[i] = s
+        q[j] = (r[j, i] + r[i, j]) / (4 * s)
+        q[k] = (r[k, i] + r[i, k]) / (4 * s)
+        q[3] = (r[k, j] - r[j, k]) / (4 * s)
+    q /= np.linalg.norm(q)
+    return q if q[3] >= 0 else -q
+
+
+def rotation_angle(rotation: np.ndarray) -> np.ndarray:
+    """Angle (radians) of rotation matrices (..., 3, 3).
+
+    atan2 of the sine and cosine parts instead of arccos of the trace: arccos loses all precision for small angles,
+    which are exactly the ones RPE measures.
+    """
+    r = np.asarray(rotation, dtype=np.float64)
+    cos = (np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0
+    axis_sin = np.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
+    sin = 0.5 * np.linalg.norm(axis_sin, axis=-1)
+    return np.arctan2(sin, cos)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# TUM files
+
+
+def read_tum(path: PathLike) -> Trajectory:
+    """Read a TUM trajectory file (`timestamp tx ty tz qx qy qz qw` per line, `#` comments, spaces or commas)."""
+    path = Path(path)
+    if not path.is_file():
+        raise TrajectoryError(f"trajectory file not found: {path}")
+    timestamps, poses = [], []
+    for line_number, line in enumerate(path.read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.replace(",", " ").split()
+        where = f"{path}:{line_number}"
+        if len(fields) != 8:
+            raise TrajectoryError(
+                f"{where}: expected 8 values 'timestamp tx ty tz qx qy qz qw', got {len(fields)}: {line!r}"
+            )
+        try:
+            values = np.array([float(f) for f in fields])
+        except ValueError:
+            raise TrajectoryError(f"{where}: not a number in {line!r}") from None
+        if not np.isfinite(values).all():
+            raise TrajectoryError(
+                f"{where}: pose at timestamp {fields[0]} is not finite (nan/inf): remove or fix that line"
+            )
+        quaternion = values[4:8]
+        norm = np.linalg.norm(quaternion)
+        if norm < 1e-6:
+            raise TrajectoryError(f"{where}: quaternion at timestamp {fields[0]} is zero, not a rotation")
+        pose = np.eye(4)
+        pose[:3, :3] = quaternion_to_rotation(quaternion / norm)  # files often carry rounded, non-unit quaternions
+        pose[:3, 3] = values[1:4]
+        timestamps.append(values[0])
+        poses.append(pose)
+    if not timestamps:
+        raise TrajectoryError(f"{path} contains no poses (expected lines 'timestamp tx ty tz qx qy qz qw')")
+    return Trajectory(np.array(timestamps), np.stack(poses))
+
+
+def write_tum(path: PathLike, trajectory: Trajectory) -> Path:
+    """Write a TUM trajectory file; returns its path."""
+    path = Path(path)
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    for timestamp, pose in zip(trajectory.timestamps, trajectory.poses):
+        q = rotation_to_quaternion(pose[:3, :3])
+        t = pose[:3, 3]
+        lines.append(
+            f"{timestamp:.6f} {t[0]:.9f} {t[1]:.9f} {t[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
+        )
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Association and alignment
+
+
+def associate(t_a: np.ndarray, t_b: np.ndarray, max_dt: float) -> np.ndarray:
+    """Index pairs (M, 2) matching timestamps of `t_a` to `t_b`, one-to-one, |dt| <= max_dt, ordered by `t_a`.
+
+    Like the TUM `associate.py`: among all candidate pairs, the closest in time are accepted first, and each
+    timestamp is used at most once.
+    """
+    t_a = np.asarray(t_a, dtype=np.float64)
+    t_b = np.asarray(t_b, dtype=np.float64)
+    if max_dt < 0:
+        raise TrajectoryError(f"max_dt must be >= 0 seconds, got {max_dt}")
+    order_b = np.argsort(t_b, kind="stable")
+    sorted_b = t_b[order_b]
+    first = np.searchsorted(sorted_b, t_a - max_dt, side="left")
+    last = np.searchsorted(sorted_b, t_a + max_dt, side="right")
+    counts = last - first
+    a_index = np.repeat(np.arange(len(t_a)), counts)
+    # Position of each candidate inside its window: a running index reset at each window start.
+    offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    b_index = order_b[np.repeat(first, counts) + offsets]
+    dt = np.abs(t_a[a_index] - t_b[b_index])
+
+    used_a = np.zeros(len(t_a), dtype=bool)
+    used_b = np.zeros(len(t_b), dtype=bool)
+    pairs = []
+    for k in np.lexsort((b_index, a_index, dt)):
+        a, b = a_index[k], b_index[k]
+        if not used_a[a] and not used_b[b]:
+            used_a[a] = used_b[b] = True
+            pairs.append((a, b))
+    if not pairs:
+        span = lambda t: f"[{t.min():.3f}, {t.max():.3f}]" if len(t) else "[empty]"  # noqa: E731
+        raise TrajectoryError(
+            f"no overlapping timestamps within {max_dt} s: the first trajectory spans {span(t_a)}, the second "
+            f"{span(t_b)}; check that both use the same clock and data set (or raise max_dt)"
+        )
+    pairs = np.array(pairs, dtype=np.int64)
+    return pairs[np.argsort(t_a[pairs[:, 0]], kind="stable")]
+
+
+def umeyama_alignment(
+    src: np.ndarray, dst: np.ndarray, with_scale: bool = False
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares (R, t, s) minimising sum |dst - (s R src + t)|^2 (Umeyama 1991).
+
+    R is a proper rotation (det = +1) even when the best orthogonal fit would be a reflection; s = 1 unless
+    `with_scale` (monocular methods need scale, RGB-D ones must not get it).
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
+        raise TrajectoryError(f"alignment needs two (N, 3) point sets of equal shape, got {src.shape} and {dst.shape}")
+    if len(src) < 3:
+        raise TrajectoryError(f"alignment needs at least 3 point pairs to fix a rotation, got {len(src)}")
+    if not (np.isfinite(src).all() and np.isfinite(dst).all()):
+        raise TrajectoryError("alignment input contains nan/inf points")
+    mean_src, mean_dst = src.mean(axis=0), dst.mean(axis=0)
+    centred_src, centred_dst = src - mean_src, dst - mean_dst
+    covariance = centred_dst.T @ centred_src / len(src)
+    u, singular, vt = np.linalg.svd(covariance)
+    reflection = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        reflection[2, 2] = -1.0
+    rotation = u @ reflection @ vt
+    scale = 1.0
+    if with_scale:
+        variance_src = (centred_src**2).sum() / len(src)
+        if variance_src <= 0:
+            raise TrajectoryError("cannot fit a scale: all source points coincide")
+        scale = float(np.trace(np.diag(singular) @ reflection) / variance_src)
+    translation = mean_dst - scale * rotation @ mean_src
+    return rotation, translation, scale
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# ATE
+
+
+@dataclass(frozen=True, eq=False)
+class AteResult:
+    rmse: float  # metres
+    mean: float
+    median: float
+    max: float
+    std: float
+    n: int  # matched poses
+    errors: np.ndarray  # (n,) position error per matched pose, metres
+    timestamps: np.ndarray  # (n,) ground-truth timestamps of the matched poses
+    aligned_positions: np.ndarray  # (n, 3) estimated positions after alignment
+    gt_positions: np.ndarray  # (n, 3)
+    transform: np.ndarray  # 4x4 similarity applied to the estimate (identity without alignment)
+
+
+def ate(est: Trajectory, gt: Trajectory, max_dt: float = 0.02, align: bool = True) -> AteResult:
+    """Absolute trajectory error of the matched camera positions (metres), after rigid alignment when `align`."""
+    pairs = associate(est.timestamps, gt.timestamps, max_dt)
+    est_positions = est.positions[pairs[:, 0]]
+    gt_positions = gt.positions[pairs[:, 1]]
+    transform = np.eye(4)
+    if align:
+        rotation, translation, scale = umeyama_alignment(est_positions, gt_positions)
+        transform[:3, :3] = scale * rotation
+        transform[:3, 3] = translation
+    aligned = est_positions @ transform[:3, :3].T + transform[:3, 3]
+    errors = np.linalg.norm(aligned - gt_positions, axis=1)
+    return AteResult(
+        rmse=float(np.sqrt(np.mean(errors**2))),
+        mean=float(errors.mean()),
+        median=float(np.median(errors)),
+        max=float(errors.max()),
+        std=float(errors.std()),
+        n=len(errors),
+        errors=errors,
+        timestamps=gt.timestamps[pairs[:, 1]],
+        aligned_positions=aligned,
+        gt_positions=gt_positions,
+        transform=transform,
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# RPE
+
+
+@dataclass(frozen=True, eq=False)
+class RpeResult:
+    delta: float  # pose distance of each pair, in `unit`
+    unit: str  # "frames" or "metres"
+    n: int  # pose pairs
+    trans_rmse: float  # metres
+    trans_mean: float
+    rot_rmse: float  # degrees
+    rot_mean: float
+    trans_errors: np.ndarray  # (n,) metres
+    rot_errors: np.ndarray  # (n,) degrees
+
+
+def path_length(positions: np.ndarray) -> np.ndarray:
+    """Cumulative distance travelled (N,), starting at 0."""
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def _rpe_pairs(gt_positions: np.ndarray, delta: float, unit: str) -> tuple[np.ndarray, np.ndarray]:
+    n = len(gt_positions)
+    if unit == "frames":
+        if delta < 1 or int(delta) != delta:
+            raise TrajectoryError(f"RPE delta in frames must be a positive integer, got {delta}")
+        first = np.arange(max(n - int(delta), 0))
+        return first, first + int(delta)
+    if unit == "metres":
+        if not delta > 0:
+            raise TrajectoryError(f"RPE delta in metres must be positive, got {delta}")
+        travelled = path_length(gt_positions)
+        # Pair each pose with the first later pose at least `delta` metres further along the ground-truth path.
+        # A nanometre of slack keeps sums of evenly spaced steps (0.1 m x 10) from missing their pose by rounding.
+        second = np.maximum(np.searchsorted(travelled, travelled + delta - 1e-9, side="left"), np.arange(n) + 1)
+        first = np.flatnonzero(second < n)
+        return first, second[first]
+    raise TrajectoryError(f"RPE unit must be 'frames' or 'metres', got {unit!r}")
+
+
+def rpe(est: Trajectory, gt: Trajectory, delta: float = 1, unit: str = "frames", max_dt: float = 0.02) -> RpeResult:
+    """Relative pose error over pose pairs `delta` frames apart, or ~`delta` metres apart along the ground truth.
+
+    Error of a pair (i, j): E = (G_i^-1 G_j)^-1 (P_i^-1 P_j); translation error |t(E)| in metres, rotation error
+    angle(R(E)) in degrees. Invariant to any rigid transform of either trajectory, so no alignment is needed.
+    """
+    pairs = associate(est.timestamps, gt.timestamps, max_dt)
+    est_poses = est.poses[pairs[:, 0]]
+    gt_poses = gt.poses[pairs[:, 1]]
+    i, j = _rpe_pairs(gt_poses[:, :3, 3], delta, unit)
+    if i.size == 0:
+        length = path_length(gt_poses[:, :3, 3])[-1]
+        raise TrajectoryError(
+            f"no pose pairs {delta} {unit} apart: the {len(gt_poses)} matched poses span {length:.2f} m of "
+            "ground-truth path; use a smaller RPE delta"
+        )
+    gt_motion = np.linalg.inv(gt_poses[i]) @ gt_poses[j]
+    est_motion = np.linalg.inv(est_poses[i]) @ est_poses[j]
+    error = np.linalg.inv(gt_motion) @ est_motion
+    trans_errors = np.linalg.norm(error[:, :3, 3], axis=1)
+    rot_errors = np.degrees(rotation_angle(error[:, :3, :3]))
+    return RpeResult(
+        delta=float(delta),
+        unit=unit,
+        n=int(i.size),
+        trans_rmse=float(np.sqrt(np.mean(trans_errors**2))),
+        trans_mean=float(trans_errors.mean()),
+        rot_rmse=float(np.sqrt(np.mean(rot_errors**2))),
+        rot_mean=float(rot_errors.mean()),
+        trans_errors=trans_errors,
+        rot_errors=rot_errors,
+    )

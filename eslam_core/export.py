@@ -1,0 +1,90 @@
+"""What a run leaves behind: checkpoint, trajectory (TUM format) and mesh of the map."""
+from __future__ import annotations
+
+import pickle
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+
+from .culling import visible_mask
+from .evaluation.trajectory import Trajectory, write_tum
+from .mesh import MeshSettings, extract_mesh
+from .slam import SLAM
+
+
+class CheckpointError(ValueError):
+    pass
+
+
+def save_checkpoint(slam: SLAM, path: Path) -> Path:
+    path = Path(path)
+    tmp = path.with_suffix(path.suffix + ".partial")
+    torch.save(slam.state_dict(), tmp)
+    tmp.replace(path)  # never leave a truncated checkpoint behind an interrupted save
+    return path
+
+
+def load_checkpoint(path: Path) -> SLAM:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path} (an `eslam run --out DIR` writes DIR/checkpoint.pt)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as e:
+        raise CheckpointError(f"{path} is not a readable ESLAM checkpoint ({e}); re-run `eslam run`") from None
+    if not isinstance(state, dict) or "field" not in state:
+        raise CheckpointError(f"{path} is not an ESLAM checkpoint (no map inside)")
+    return SLAM.from_state_dict(state)
+
+
+def estimated_trajectory(slam: SLAM) -> Trajectory:
+    return Trajectory(slam.timestamps(), slam.poses())
+
+
+def ground_truth_trajectory(slam: SLAM) -> Trajectory | None:
+    known = [(r.timestamp, r.gt_pose) for r in slam.records if r.gt_pose is not None]
+    if not known:
+        return None
+    return Trajectory(np.array([t for t, _ in known]), np.stack([p for _, p in known]))
+
+
+def write_trajectories(slam: SLAM, out_dir: Path) -> None:
+    write_tum(out_dir / "trajectory.txt", estimated_trajectory(slam))
+    gt = ground_truth_trajectory(slam)
+    if gt is not None:
+        write_tum(out_dir / "groundtruth.txt", gt)
+
+
+def observed_bound(slam: SLAM, margin: float) -> np.ndarray:
+    """Box around what the keyframes observed (plus a margin), inside the map's bound: what is worth meshing."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for kf in slam.keyframes:
+        d = kf.depth_image().reshape(-1)
+        ok = (d > 0) & kf.usable.reshape(-1)
+        pts = (slam.dirs_cam[ok] * d[ok, None]) @ kf.pose[:3, :3].T + kf.pose[:3, 3]
+        if len(pts):
+            lo = np.minimum(lo, pts.amin(0).numpy())
+            hi = np.maximum(hi, pts.amax(0).numpy())
+    if not np.all(np.isfinite(lo)):
+        return slam.bound
+    return np.stack([np.maximum(lo - margin, slam.bound[0]), np.minimum(hi + margin, slam.bound[1])])
+
+
+def map_mesh(slam: SLAM, resolution: float) -> trimesh.Trimesh:
+    """Marching cubes on the decoded SDF over the observed region, culled to what the keyframes saw."""
+    if slam.field is None:
+        raise CheckpointError("the map is empty: no frame has been processed")
+    T = slam.cfg.model.truncation
+    poses = torch.stack([kf.pose for kf in slam.keyframes]).double().numpy()
+    depths = torch.stack([kf.depth_image() for kf in slam.keyframes]).numpy()
+
+    def visible(points: np.ndarray) -> np.ndarray:
+        return visible_mask(points, poses, slam.intr, depths, T)
+
+    field = slam.field.eval()
+    with torch.no_grad():
+        return extract_mesh(field.sdf, field.color, observed_bound(slam, 2 * T),
+                            MeshSettings(resolution=resolution, truncation=T), visible_fn=visible)

@@ -1,0 +1,55 @@
+"""Build and load the C kernels (eslam_core/kernels/*.c) with the machine's C compiler, on first use.
+
+The shared library is cached by source hash in $ESLAM_CACHE (default ~/.cache/eslam). Without a compiler, or with
+ESLAM_NATIVE=0, callers fall back to the pure-torch reference implementations (slower, same results).
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import logging
+import os
+import shutil
+import subprocess
+import tempfile
+from functools import lru_cache
+from pathlib import Path
+from typing import Optional
+
+log = logging.getLogger("eslam")
+KERNEL_DIR = Path(__file__).resolve().parent / "kernels"
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("ESLAM_CACHE", Path.home() / ".cache" / "eslam"))
+
+
+def _compile(src: Path, out: Path) -> None:
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        raise RuntimeError("no C compiler found (set CC)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
+        tmp_out = Path(tmp) / out.name
+        cmd = [cc, "-O3", "-fopenmp", "-shared", "-fPIC", "-o", str(tmp_out), str(src)]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr}")
+        os.replace(tmp_out, out)  # atomic: concurrent builders never load a half-written library
+
+
+@lru_cache(maxsize=None)
+def load_kernel(name: str) -> Optional[ctypes.CDLL]:
+    """The compiled library of kernels/<name>.c, or None (logged once) when it cannot be built."""
+    if os.environ.get("ESLAM_NATIVE", "1") == "0":
+        return None
+    src = KERNEL_DIR / f"{name}.c"
+    digest = hashlib.sha256(src.read_bytes()).hexdigest()[:16]
+    lib_path = cache_dir() / f"{name}-{digest}.so"
+    try:
+        if not lib_path.exists():
+            _compile(src, lib_path)
+        return ctypes.CDLL(str(lib_path))
+    except (OSError, RuntimeError) as e:
+        log.warning("native kernel %s unavailable, using the slower torch implementation: %s", name, e)
+        return None
