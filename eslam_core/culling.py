@@ -47,15 +47,15 @@ def _checked_poses(poses: np.ndarray) -> np.ndarray:
     return poses
 
 
-def _camera_coordinates(points: np.ndarray, world_to_camera: np.ndarray) -> np.ndarray:
-    """Points (N, 3) expressed in each of K cameras: (K, N, 3).
+def _camera_coordinates(points: np.ndarray, world_to_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """x, y, z (each K x N) of N world points in each of K cameras.
 
-    One matrix product against the K rotations side by side (3 x 3K) instead of K small ones: BLAS does the work.
+    One (K x 3) @ (3 x N) product per axis keeps every result contiguous, which the element-wise tests that
+    follow need to be fast (this function is the inner loop of culling).
     """
-    k = len(world_to_camera)
-    rotations = world_to_camera[:, :3, :3].transpose(2, 0, 1).reshape(3, 3 * k)  # column block j = R_j^T
-    cam = points @ rotations + world_to_camera[:, :3, 3].reshape(1, 3 * k)
-    return cam.reshape(len(points), k, 3).transpose(1, 0, 2)
+    points_t = points.T
+    rotation, translation = world_to_camera[:, :3, :3], world_to_camera[:, :3, 3]
+    return tuple(rotation[:, axis, :] @ points_t + translation[:, axis, None] for axis in range(3))
 
 
 def _seen_by_any_camera(
@@ -67,28 +67,28 @@ def _seen_by_any_camera(
     near: float,
 ) -> np.ndarray:
     """(N,) bool: seen by at least one of the K cameras of this chunk."""
-    cam = _camera_coordinates(points, world_to_camera)
-    z = cam[..., 2]
-    in_front = z > near
-    # Points behind the camera would divide by z <= 0; they are masked out by `in_front` anyway.
-    safe_z = np.where(in_front, z, 1.0)
-    u = intr.fx * cam[..., 0] / safe_z + intr.cx
-    v = intr.fy * cam[..., 1] / safe_z + intr.cy
+    n = len(points)
+    x, y, z = _camera_coordinates(points, world_to_camera)
+    # Points at or behind the camera give inf/nan here; `in_front` masks them out (nan compares False anyway).
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = intr.fx * (x / z) + intr.cx
+        v = intr.fy * (y / z) + intr.cy
     # Pixel p covers [p - 0.5, p + 0.5): the nearest pixel exists iff the projection is inside the image rectangle.
-    inside = in_front & (u >= -0.5) & (u < intr.width - 0.5) & (v >= -0.5) & (v < intr.height - 0.5)
-    camera_idx, point_idx = np.nonzero(inside)
+    inside = (z > near) & (u >= -0.5) & (u < intr.width - 0.5) & (v >= -0.5) & (v < intr.height - 0.5)
+    hits = np.flatnonzero(inside)  # flat (camera, point) indices
+    seen = np.zeros(n, dtype=bool)
     if depths is None:
-        seen = np.zeros(len(points), dtype=bool)
-        seen[point_idx] = True
+        seen[hits % n] = True
         return seen
-    col = np.minimum(np.floor(u[camera_idx, point_idx] + 0.5).astype(np.int64), intr.width - 1)
-    row = np.minimum(np.floor(v[camera_idx, point_idx] + 0.5).astype(np.int64), intr.height - 1)
-    observed = depths[camera_idx, row, col]
+    # u + 0.5 >= 0 for these, so truncation towards zero is the floor: the nearest pixel.
+    col = np.minimum((u.ravel()[hits] + 0.5).astype(np.int64), intr.width - 1)
+    row = np.minimum((v.ravel()[hits] + 0.5).astype(np.int64), intr.height - 1)
+    camera = hits // n
+    observed = depths.reshape(-1)[(camera * intr.height + row) * intr.width + col]
     # A point is hidden when it lies deeper than the measured surface plus the truncation band.
     # Pixels without a measurement (0 or nan) prove nothing, so they do not make a point visible.
-    not_occluded = (observed > 0) & (z[camera_idx, point_idx] <= observed + truncation)
-    seen = np.zeros(len(points), dtype=bool)
-    seen[point_idx[not_occluded]] = True
+    not_occluded = (observed > 0) & (z.ravel()[hits] <= observed + truncation)
+    seen[hits[not_occluded] % n] = True
     return seen
 
 
@@ -123,7 +123,11 @@ def visible_mask(
         last = min(first + cameras_per_chunk, len(poses))
         chunk_depths = None
         if depths is not None:
-            chunk_depths = np.asarray(depths[first:last], dtype=np.float32)
+            try:
+                chunk_depths = np.ascontiguousarray(depths[first:last], dtype=np.float32)
+            except ValueError:
+                raise CullingError(f"depth images of cameras {first}-{last - 1} differ in size: give "
+                                   f"{intr.height}x{intr.width} images, one per pose") from None
             expected = (last - first, intr.height, intr.width)
             if chunk_depths.shape != expected:
                 raise CullingError(
@@ -142,7 +146,9 @@ def visible_mask(
     return visible
 
 
-def keep_visible_faces(mesh: trimesh.Trimesh, vertex_visible: np.ndarray, min_visible_vertices: int = 3) -> trimesh.Trimesh:
+def keep_visible_faces(
+    mesh: trimesh.Trimesh, vertex_visible: np.ndarray, min_visible_vertices: int = 3
+) -> trimesh.Trimesh:
     """The sub-mesh of faces with at least `min_visible_vertices` visible vertices; unused vertices are dropped and
     vertex (or face) colours follow their vertices (faces)."""
     if not 1 <= min_visible_vertices <= 3:

@@ -34,7 +34,10 @@ def mesh_scores(rec_path: Path, gt_path: Path, ds: RGBDDataset, truncation: floa
     frames = [ds[i] for i in range(0, len(ds), step)]
     poses = np.stack([f.pose for f in frames])
     depths = np.stack([f.depth for f in frames])
-    gt = cull_mesh(trimesh.load(gt_path, process=False), poses, ds.intrinsics, depths, truncation)
+    gt = trimesh.load(gt_path, process=False)
+    # Culling keeps whole faces; the true mesh's large faces must be split first or partly seen walls vanish.
+    gt = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(gt.vertices, gt.faces, max_edge=0.02), process=False)
+    gt = cull_mesh(gt, poses, ds.intrinsics, depths, truncation)
     rec = cull_mesh(trimesh.load(rec_path, process=False), poses, ds.intrinsics, depths, truncation)
     return reconstruction_metrics(rec, gt, n_points=n_points)
 

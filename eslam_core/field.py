@@ -5,6 +5,8 @@ the raw colour. `beta` is the learnable sharpness of the SDF-to-density conversi
 """
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
 import torch
 from torch import nn
@@ -12,6 +14,18 @@ from torch import nn
 from .config import ModelConfig
 from .decoders import Decoder
 from .planes import FeaturePlanes
+
+
+class RadianceField(Protocol):
+    """What the renderer needs of a scene: TSDF, colour, sharpness and the box where the scene lives."""
+
+    beta: torch.Tensor
+    bound_min: torch.Tensor
+    bound_max: torch.Tensor
+
+    def sdf(self, points: torch.Tensor) -> torch.Tensor: ...
+
+    def color(self, points: torch.Tensor) -> torch.Tensor: ...
 
 
 class SceneField(nn.Module):
@@ -26,6 +40,14 @@ class SceneField(nn.Module):
         self.appearance_decoder = Decoder(
             self.appearance_planes.out_dim, cfg.decoder_hidden, cfg.decoder_layers, 3, "sigmoid")
         self.beta = nn.Parameter(torch.tensor(float(cfg.beta_init)), requires_grad=cfg.learn_beta)
+
+    @property
+    def bound_min(self) -> torch.Tensor:
+        return self.geometry_planes.bound_min
+
+    @property
+    def bound_max(self) -> torch.Tensor:
+        return self.geometry_planes.bound_min + self.geometry_planes.bound_extent
 
     def sdf(self, points: torch.Tensor) -> torch.Tensor:
         """(N, 3) -> (N,) normalised TSDF."""

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import torch
 
 from .config import RenderConfig
-from .field import SceneField
+from .field import RadianceField
 from .sampling import far_in_bound, importance, near_surface, stratified
 
 
@@ -35,15 +35,14 @@ def render_weights(alpha: torch.Tensor) -> torch.Tensor:
     return alpha * transmittance
 
 
-def sample_depths(field: SceneField, origins: torch.Tensor, dirs: torch.Tensor, depth_gt: torch.Tensor,
+def sample_depths(field: RadianceField, origins: torch.Tensor, dirs: torch.Tensor, depth_gt: torch.Tensor,
                   cfg: RenderConfig, truncation: float) -> torch.Tensor:
     """Sorted sample depths (R, N_strat + N_imp): stratified plus near-surface (with depth) or importance samples."""
     has_depth = depth_gt > 0
-    bmin = field.geometry_planes.bound_min
-    bmax = bmin + field.geometry_planes.bound_extent
     if has_depth.all():
         far = cfg.depth_far_factor * depth_gt
     else:
+        bmin, bmax = field.bound_min, field.bound_max
         far = torch.where(has_depth, cfg.depth_far_factor * depth_gt, far_in_bound(origins, dirs, bmin, bmax))
         far = far.clamp_min(1e-3)
     z = stratified(torch.zeros_like(far), far, cfg.n_stratified)
@@ -61,7 +60,7 @@ def sample_depths(field: SceneField, origins: torch.Tensor, dirs: torch.Tensor, 
     return torch.sort(torch.cat([z, z_extra], dim=-1), dim=-1).values
 
 
-def render_rays(field: SceneField, origins: torch.Tensor, dirs: torch.Tensor, depth_gt: torch.Tensor,
+def render_rays(field: RadianceField, origins: torch.Tensor, dirs: torch.Tensor, depth_gt: torch.Tensor,
                 cfg: RenderConfig, truncation: float) -> RenderOutput:
     """Render depth and colour of rays (R,3) origins / directions with planar-unit directions."""
     z = sample_depths(field, origins.detach(), dirs.detach(), depth_gt, cfg, truncation)

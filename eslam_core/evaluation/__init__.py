@@ -8,7 +8,15 @@
 Culling of meshes to the observed surface lives in eslam_core.culling (mesh extraction uses it too).
 """
 from .depth_l1 import DepthL1Result, depth_l1
-from .reconstruction import MeshError, ReconstructionResult, check_mesh, icp_align, load_mesh, reconstruction_metrics, sample_surface
+from .reconstruction import (
+    MeshError,
+    ReconstructionResult,
+    check_mesh,
+    icp_align,
+    load_mesh,
+    reconstruction_metrics,
+    sample_surface,
+)
 from .trajectory import (
     AteResult,
     RpeResult,

@@ -30,11 +30,19 @@ from .report import (
 USER_ERRORS = (ValueError, OSError)
 
 
-def _positive_or_zero(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
+def _count(minimum: int):
+    """argparse type: an integer >= minimum."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    return parse
 
 
 def add_eval_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -50,9 +58,9 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
                         help="data set location, if it moved since the run (default: the path in summary.json)")
     parser.add_argument("--align", choices=ALIGN_CHOICES, default="none",
                         help="align the reconstruction to the ground-truth mesh before the metrics (default: none)")
-    parser.add_argument("--points", type=_positive_or_zero, default=450_000,
+    parser.add_argument("--points", type=_count(1), default=450_000,
                         help="surface samples per mesh for accuracy / completion (default: 450000)")
-    parser.add_argument("--depth-views", type=_positive_or_zero, default=1000,
+    parser.add_argument("--depth-views", type=_count(0), default=1000,
                         help="random views for depth L1; 0 disables it (default: 1000)")
     parser.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
     return parser
@@ -70,10 +78,9 @@ def run_eval(args: argparse.Namespace) -> int:
             return 0
         if args.run_dir is None:
             raise RunDirectoryError("missing RUN_DIR: `eslam eval RUN_DIR` or `eslam eval --compare RUN_A RUN_B`")
-        if args.points == 0:
-            raise RunDirectoryError("--points must be positive")
+        run_dir = Path(args.run_dir)
         report = evaluate_run(
-            args.run_dir,
+            run_dir,
             gt_mesh=args.gt_mesh,
             data=args.data,
             align=args.align,
@@ -81,10 +88,10 @@ def run_eval(args: argparse.Namespace) -> int:
             depth_views=args.depth_views,
             plots=not args.no_plots,
         )
-        write_report_json(report, args.run_dir / "report.json")
-        write_report_markdown(report, args.run_dir / "report.md")
+        write_report_json(report, run_dir / "report.json")
+        write_report_markdown(report, run_dir / "report.md")
         print(render_markdown(report))
-        print(f"(written to {args.run_dir / 'report.json'} and {args.run_dir / 'report.md'})")
+        print(f"(written to {run_dir / 'report.json'} and {run_dir / 'report.md'})")
         return 0
     except USER_ERRORS as error:
         print(f"eslam eval: error: {error}", file=sys.stderr)

@@ -64,7 +64,9 @@ def read_run(run_dir: PathLike) -> RunFiles:
     try:
         summary = json.loads(summary_path.read_text())
     except json.JSONDecodeError as error:
-        raise RunDirectoryError(f"{summary_path} is not valid JSON ({error}): the run may have been interrupted") from None
+        raise RunDirectoryError(
+            f"{summary_path} is not valid JSON ({error}): the run may have been interrupted"
+        ) from None
     trajectory = run_dir / "trajectory.txt"
     if not trajectory.is_file():
         raise RunDirectoryError(f"{run_dir} has no trajectory.txt: the run did not finish writing its results")
@@ -73,7 +75,9 @@ def read_run(run_dir: PathLike) -> RunFiles:
         path = run_dir / name
         return path if path.is_file() else None
 
-    return RunFiles(run_dir, summary, trajectory, optional("groundtruth.txt"), optional("mesh.ply"), optional("config.yaml"))
+    return RunFiles(
+        run_dir, summary, trajectory, optional("groundtruth.txt"), optional("mesh.ply"), optional("config.yaml")
+    )
 
 
 def _read_config(path: Optional[Path]) -> Optional[dict]:
@@ -82,11 +86,13 @@ def _read_config(path: Optional[Path]) -> Optional[dict]:
     try:
         return yaml.safe_load(path.read_text())
     except yaml.YAMLError as error:
-        raise RunDirectoryError(f"{path} is not valid YAML ({error}): restore it from the config the run used") from None
+        raise RunDirectoryError(
+            f"{path} is not valid YAML ({error}): restore it from the config the run used"
+        ) from None
 
 
 def find_gt_mesh(data_path: Path) -> Optional[Path]:
-    """The ground-truth mesh next to a data set in the NICE-SLAM layout (Replica/office0 -> Replica/office0_mesh.ply)."""
+    """The ground-truth mesh next to a data set, NICE-SLAM layout: Replica/office0 -> Replica/office0_mesh.ply."""
     for candidate in (data_path.parent / f"{data_path.name}_mesh.ply", data_path / f"{data_path.name}_mesh.ply"):
         if candidate.is_file():
             return candidate
@@ -179,17 +185,19 @@ def observing_cameras(
     summary: dict, data: Optional[PathLike], estimate: Trajectory, max_cameras: int, config: Optional[dict] = None
 ) -> ObservingCameras:
     """The run's frames (every frame, or a stride keeping at most `max_cameras`) with their sensor depth."""
-    data_path = Path(data) if data is not None else Path(summary.get("data") or "")
-    kind = summary.get("dataset_kind")
-    if not str(data_path) or not data_path.exists():
+    recorded = data if data is not None else summary.get("data")
+    if not recorded or not Path(recorded).exists():
         raise RunDirectoryError(
-            f"data set not found at {str(data_path) or '(summary.json has no data path)'}: culling needs the run's "
+            f"data set not found at {recorded or '(summary.json has no data path)'}: culling needs the run's "
             "depth images; pass the data set location with --data"
         )
+    data_path, kind = Path(recorded), summary.get("dataset_kind")
     try:
         from ..datasets import open_dataset
     except ImportError as error:
-        raise RunDirectoryError(f"cannot load data sets ({error}): eslam_core.datasets is required for culling") from None
+        raise RunDirectoryError(
+            f"cannot load data sets ({error}): eslam_core.datasets is required for culling"
+        ) from None
     dataset = open_dataset(data_path, kind or "auto", **_camera_overrides(config))
     start, stop, stride = (list(summary.get("frames") or [0, None, 1]) + [None, None, None])[:3]
     dataset = dataset.subset(start or 0, stop, stride or 1)
@@ -224,6 +232,16 @@ def cull_to_observed(
 # Evaluation
 
 
+@dataclass(frozen=True)
+class EvaluationOptions:
+    align: str = "none"  # "none" or "icp": align the reconstruction to the ground-truth mesh before culling
+    n_points: int = 450_000  # surface samples per mesh
+    depth_views: int = 1000  # random views for depth L1 (0 = skip)
+    plots: bool = True
+    max_cameras: int = 300  # culling cameras: every frame, or a stride keeping at most this many
+    seed: int = 0
+
+
 def evaluate_run(
     run_dir: PathLike,
     gt_mesh: Optional[PathLike] = None,
@@ -242,14 +260,16 @@ def evaluate_run(
     """
     if align not in ALIGN_CHOICES:
         raise RunDirectoryError(f"align must be one of {ALIGN_CHOICES}, got {align!r}")
+    options = EvaluationOptions(align, n_points, depth_views, plots, max_cameras, seed)
     started = time.perf_counter()
     run = read_run(run_dir)
     summary = run.summary
+    data_path = str(data) if data is not None else summary.get("data")
     report: dict[str, Any] = {
         "run_dir": str(run.run_dir.resolve()),
         "evaluated_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "dataset": {
-            "path": str(data) if data is not None else summary.get("data"),
+            "path": data_path,
             "kind": summary.get("dataset_kind"),
             "frames": summary.get("frames"),
             "n_frames": summary.get("n_frames"),
@@ -267,7 +287,6 @@ def evaluate_run(
         "config_file": summary.get("config_file"),
         "config": _read_config(run.config),
     }
-    plots_dir = run.run_dir / "plots"
     estimate = read_tum(run.trajectory)
 
     clock = time.perf_counter()
@@ -275,21 +294,13 @@ def evaluate_run(
         report["skipped"].append("trajectory metrics: no groundtruth.txt in the run (the data set has no poses)")
     else:
         report["trajectory"], ate_result = _trajectory_section(estimate, read_tum(run.groundtruth))
-        if plots:
-            from . import plots as figures
-
-            report["plots"]["trajectory"] = _relative(
-                figures.plot_trajectory(ate_result.gt_positions, ate_result.aligned_positions,
-                                        plots_dir / "trajectory.png", title=f"ATE RMSE {100 * ate_result.rmse:.2f} cm"),
-                run.run_dir)
-            report["plots"]["position_error"] = _relative(
-                figures.plot_position_error(ate_result.timestamps, ate_result.errors, plots_dir / "position_error.png"),
-                run.run_dir)
+        if options.plots:
+            report["plots"].update(_trajectory_plots(ate_result, run.run_dir))
     report["seconds"]["trajectory"] = time.perf_counter() - clock
 
     gt_mesh_path = Path(gt_mesh) if gt_mesh is not None else None
-    if gt_mesh_path is None and report["dataset"]["path"]:
-        gt_mesh_path = find_gt_mesh(Path(report["dataset"]["path"]))
+    if gt_mesh_path is None and data_path:
+        gt_mesh_path = find_gt_mesh(Path(data_path))
         if gt_mesh_path is not None:
             log.info("using the ground-truth mesh found next to the data set: %s", gt_mesh_path)
     if run.mesh is None:
@@ -297,49 +308,58 @@ def evaluate_run(
     elif gt_mesh_path is None:
         report["skipped"].append("reconstruction metrics: no ground-truth mesh (pass --gt-mesh PLY)")
     else:
-        _reconstruction_sections(report, run, estimate, gt_mesh_path, data, align, n_points, depth_views, plots,
-                                 max_cameras, seed, plots_dir)
+        _evaluate_meshes(report, run, estimate, gt_mesh_path, data_path, options)
     report["seconds"]["total"] = time.perf_counter() - started
     return _json_ready(report)
 
 
-def _reconstruction_sections(report, run, estimate, gt_mesh_path, data, align, n_points, depth_views, plots,
-                             max_cameras, seed, plots_dir) -> None:
+def _trajectory_plots(result, run_dir: Path) -> dict[str, str]:
+    from . import plots as figures  # matplotlib is imported only when plots are wanted
+
+    title = f"ATE RMSE {100 * result.rmse:.2f} cm"
+    trajectory = figures.plot_trajectory(result.gt_positions, result.aligned_positions,
+                                         run_dir / "plots" / "trajectory.png", title=title)
+    error = figures.plot_position_error(result.timestamps, result.errors, run_dir / "plots" / "position_error.png")
+    return {"trajectory": _relative(trajectory, run_dir), "position_error": _relative(error, run_dir)}
+
+
+def _evaluate_meshes(report: dict, run: RunFiles, estimate: Trajectory, gt_mesh_path: Path,
+                     data_path: Optional[str], options: EvaluationOptions) -> None:
+    """Fill the reconstruction and depth L1 sections: align (optionally), cull both meshes, measure."""
     truncation = run.summary.get("truncation")
     if truncation is None:
         raise RunDirectoryError(f"{run.run_dir / 'summary.json'} has no 'truncation' (metres): needed for culling")
     rec = load_mesh(run.mesh, "reconstructed mesh")
     gt = load_mesh(gt_mesh_path, "ground-truth mesh")
     icp_transform = None
-    if align == "icp":
+    if options.align == "icp":
         clock = time.perf_counter()
-        icp_transform = icp_align(rec, gt, seed=seed)
+        icp_transform = icp_align(rec, gt, seed=options.seed)
         rec = rec.copy()
         rec.apply_transform(icp_transform)
         report["seconds"]["icp"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
-    cameras = observing_cameras(run.summary, data, estimate, max_cameras, report["config"])
+    cameras = observing_cameras(run.summary, data_path, estimate, options.max_cameras, report["config"])
     (rec_culled, gt_culled), n_cameras = cull_to_observed([rec, gt], cameras, float(truncation))
     report["seconds"]["culling"] = time.perf_counter() - clock
-    culling = {
-        "cameras": n_cameras,
-        "truncation_m": float(truncation),
-        "rec_faces": [len(rec.faces), len(rec_culled.faces)],
-        "gt_faces": [len(gt.faces), len(gt_culled.faces)],
-    }
     # Culled meshes always have borders: only emptiness (nothing observed) is worth an error here.
     check_mesh(rec_culled, "reconstructed mesh after culling", warn=False)
     check_mesh(gt_culled, "ground-truth mesh after culling", warn=False)
 
     clock = time.perf_counter()
-    metrics = reconstruction_metrics(rec_culled, gt_culled, n_points=n_points, seed=seed)
+    metrics = reconstruction_metrics(rec_culled, gt_culled, n_points=options.n_points, seed=options.seed)
     report["seconds"]["reconstruction"] = time.perf_counter() - clock
     report["reconstruction"] = {
         "gt_mesh": str(gt_mesh_path),
-        "align": align,
+        "align": options.align,
         "icp_transform": icp_transform.tolist() if icp_transform is not None else None,
-        "culling": culling,
+        "culling": {
+            "cameras": n_cameras,
+            "truncation_m": float(truncation),
+            "rec_faces": [len(rec.faces), len(rec_culled.faces)],
+            "gt_faces": [len(gt.faces), len(gt_culled.faces)],
+        },
         "n_points": metrics.n_points,
         "accuracy_cm": 100 * metrics.accuracy,
         "completion_cm": 100 * metrics.completion,
@@ -356,10 +376,10 @@ def _reconstruction_sections(report, run, estimate, gt_mesh_path, data, align, n
         ],
     }
 
-    if depth_views <= 0:
+    if options.depth_views <= 0:
         report["skipped"].append("depth L1: disabled (--depth-views 0)")
         return
-    depth = depth_l1(rec_culled, gt_culled, n_views=depth_views, seed=seed)
+    depth = depth_l1(rec_culled, gt_culled, n_views=options.depth_views, seed=options.seed)
     report["seconds"]["depth_l1"] = depth.seconds
     report["depth_l1"] = {
         "depth_l1_cm": 100 * depth.mean,
@@ -369,11 +389,11 @@ def _reconstruction_sections(report, run, estimate, gt_mesh_path, data, align, n
         "resolution": [depth.intrinsics.width, depth.intrinsics.height],
         "seconds": depth.seconds,
     }
-    if plots and depth.examples:
+    if options.plots and depth.examples:
         from . import plots as figures
 
         path = figures.plot_depth_errors([(v.gt_depth, v.rec_depth) for v in depth.examples],
-                                         plots_dir / "depth_errors.png")
+                                         run.run_dir / "plots" / "depth_errors.png")
         report["plots"]["depth_errors"] = _relative(path, run.run_dir)
 
 
@@ -581,8 +601,8 @@ def render_comparison(report_a: dict, report_b: dict, name_a: str = "A", name_b:
     for label, keys, digits in _COMPARED:
         a, b = _lookup(report_a, keys), _lookup(report_b, keys)
         change = _number(float(b) - float(a), digits) if a is not None and b is not None else "–"
-        rows.append([label, _number(a if a is None else float(a), digits), _number(b if b is None else float(b), digits),
-                     change])
+        shown = [_number(None if value is None else float(value), digits) for value in (a, b)]
+        rows.append([label, *shown, change])
     lines = [f"# ESLAM runs compared: {name_a} vs {name_b}", "",
              f"- {name_a}: `{report_a.get('run_dir')}`", f"- {name_b}: `{report_b.get('run_dir')}`", ""]
     lines += _table(rows, ["metric", name_a, name_b, f"{name_b} − {name_a}"])

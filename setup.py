@@ -1,0 +1,40 @@
+from glob import glob
+
+from setuptools import setup
+
+setup(
+    name="eslam_ros",
+    version="0.1.0",
+    description="ESLAM dense RGB-D SLAM (multi-scale feature planes + TSDF) as a library, CLI and ROS 2 node",
+    license="MIT",
+    python_requires=">=3.10",
+    packages=["eslam_core", "eslam_core.datasets", "eslam_core.evaluation", "eslam_core.presets", "eslam_ros"],
+    # The YAML presets live in config/ (where ROS users expect them) and are also installed inside the package so
+    # that `--config icl` works after a plain pip install.
+    package_dir={"eslam_core.presets": "config"},
+    package_data={"eslam_core": ["kernels/*.c"], "eslam_core.presets": ["*.yaml", "*.xml"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/eslam_ros"]),
+        ("share/eslam_ros", ["package.xml"]),
+        ("share/eslam_ros/config", glob("config/*")),
+    ],
+    install_requires=[
+        "torch==2.13.0",
+        "numpy",
+        "scipy",
+        "scikit-image",
+        "trimesh",
+        "embreex",
+        "rtree",
+        "pyyaml",
+        "pillow",
+        "tqdm",
+        "matplotlib",
+        "rosbags",
+    ],
+    extras_require={
+        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
+        "test": ["pytest"],
+    },
+    entry_points={"console_scripts": ["eslam = eslam_core.cli:main"]},
+)

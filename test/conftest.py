@@ -1,0 +1,22 @@
+"""Shared fixtures: small synthetic RGB-D sequences of the embedded room, generated once per test session."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from eslam_core.datasets import open_dataset
+from eslam_core.synthetic import generate_scene
+
+
+@pytest.fixture(scope="session")
+def room_sequence(tmp_path_factory):
+    """30 frames of the synthetic room at 160x120 with realistic sensor noise and holes."""
+    path = generate_scene(tmp_path_factory.mktemp("room") / "seq", n_frames=30, width=160, height=120, seed=3)
+    return open_dataset(path, "tum")
+
+
+@pytest.fixture(autouse=True)
+def _seed():
+    torch.manual_seed(0)
+    np.random.seed(0)

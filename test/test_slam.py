@@ -1,0 +1,86 @@
+"""A short run on the synthetic room: trajectory and mesh against ground truth, checkpoint, re-mesh and resume."""
+import json
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from eslam_core.cli import main
+from eslam_core.config import load_config
+from eslam_core.demo import mesh_scores
+from eslam_core.export import load_checkpoint, map_mesh
+from eslam_core.keyframes import Keyframe
+from eslam_core.runner import run_sequence
+
+FAST = {"mapping": {"first_iterations": 200}, "mesh": {"resolution": 0.03}}
+
+
+@pytest.fixture(scope="module")
+def run(room_sequence, tmp_path_factory):
+    torch.manual_seed(0)
+    out = tmp_path_factory.mktemp("run")
+    summary = run_sequence(load_config("demo", FAST), room_sequence, out, progress=False)
+    return summary, out
+
+
+def test_trajectory_accuracy(run):
+    summary, out = run
+    assert summary.n_frames == 30
+    assert summary.ate_rmse_cm is not None and summary.ate_rmse_cm < 2.0
+    est = np.loadtxt(out / "trajectory.txt")
+    gt = np.loadtxt(out / "groundtruth.txt")
+    assert est.shape == gt.shape == (30, 8)
+    assert np.allclose(est[:, 0], gt[:, 0])
+
+
+def test_mesh_accuracy(run, room_sequence):
+    summary, out = run
+    scores = mesh_scores(out / "mesh.ply", room_sequence.root / "mesh.ply", room_sequence, 0.06, n_points=100_000)
+    assert scores.accuracy < 0.02
+    assert scores.completion < 0.03 and scores.completion_ratio > 0.9
+
+
+def test_summary_and_config_recorded(run):
+    summary, out = run
+    s = json.loads((out / "summary.json").read_text())
+    assert s["n_frames"] == 30 and s["ate_rmse_cm"] == pytest.approx(summary.ate_rmse_cm)
+    assert s["parameter_count"] > 1e5 and s["peak_memory_mb"] > 0 and s["seconds_per_frame"] > 0
+    assert s["keyframes"] == 8  # frames 0, 4, ..., 28
+    assert load_config(out / "config.yaml").mapping.first_iterations == 200
+
+
+def test_keyframes_are_compact(run):
+    slam = load_checkpoint(run[1] / "checkpoint.pt")
+    kf = slam.keyframes[-1]
+    h, w = kf.rgb.shape[:2]
+    assert kf.rgb.dtype == torch.uint8 and kf.depth.element_size() == 2
+    assert kf.nbytes() / (h * w) * 640 * 480 < 2 * 2**20  # under 2 MB at 640x480
+
+
+def test_keyframe_depth_roundtrip():
+    depth = torch.tensor([[0.0, 0.5, 4.2], [9.9, 13.0, 20.0]])
+    kf = Keyframe.from_tensors(0, 0.0, torch.zeros(2, 3, 3), depth, torch.ones(2, 3, dtype=torch.bool), torch.eye(4))
+    back = kf.depth_image()
+    assert torch.allclose(back[depth < 13.1], depth[depth < 13.1], atol=1e-4)
+    assert back[1, 2] == 0  # beyond the 16-bit range: stored as missing rather than wrapped
+
+
+def test_checkpoint_remesh_at_other_resolution(run, tmp_path):
+    slam = load_checkpoint(run[1] / "checkpoint.pt")
+    coarse = map_mesh(slam, 0.06)
+    fine = trimesh.load(run[1] / "mesh.ply", process=False)
+    assert 0 < len(coarse.faces) < len(fine.faces)
+    assert main(["mesh", str(run[1] / "checkpoint.pt"), "--resolution", "0.05", "--out", str(tmp_path / "m.ply")]) == 0
+    assert len(trimesh.load(tmp_path / "m.ply").faces) > 100
+
+
+def test_resume_continues_where_the_checkpoint_stopped(room_sequence, run, tmp_path):
+    """Resume the 30-frame run on 4 more... frames of the same data: only frames not yet processed are run."""
+    summary, out = run
+    first = room_sequence.subset(0, 30)
+    resumed = run_sequence(load_config("demo", FAST), first, tmp_path, resume=out / "checkpoint.pt",
+                           progress=False, write_mesh=False)
+    assert resumed.n_frames == 0  # nothing left to do
+    slam = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert len(slam.records) == 30 and np.allclose(slam.poses(), load_checkpoint(out / "checkpoint.pt").poses())

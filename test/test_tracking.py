@@ -1,0 +1,76 @@
+"""Tracking converges to the true pose against a map fitted to the synthetic room."""
+import numpy as np
+import pytest
+import torch
+
+from eslam_core.bounds import grow_to_multiple
+from eslam_core.config import load_config
+from eslam_core.field import SceneField
+from eslam_core.frames import pixel_directions_table, prepare_frame
+from eslam_core.geometry import rotation_angle_deg
+from eslam_core.keyframes import Keyframe
+from eslam_core.mapping import Mapper
+from eslam_core.tracking import Tracker, constant_velocity, outlier_mask
+
+
+def axis_angle(axis, deg):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    a = np.radians(deg)
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+@pytest.fixture(scope="module")
+def fitted_map(room_sequence):
+    """Map fitted with ground-truth poses to frames 0, 6, 12 (no tracking involved)."""
+    torch.manual_seed(0)
+    cfg = load_config("demo", {"mapping": {"rays": 3000}})
+    ds = room_sequence
+    bound = grow_to_multiple(np.array([[-2.1, -1.6, -0.1], [2.1, 1.6, 2.7]]), cfg.model.coarse_resolution)
+    field = SceneField(bound, cfg.model)
+    dirs = pixel_directions_table(ds.intrinsics)
+    kfs = []
+    for i in (0, 6, 12):
+        f = prepare_frame(ds[i], ds.intrinsics, cfg.camera)
+        kfs.append(Keyframe.from_tensors(i, f.timestamp, f.rgb, f.depth, f.depth >= 0,
+                                         torch.from_numpy(f.gt_pose).float()))
+    mapper = Mapper(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width)
+    cfg.mapping.first_iterations = 250
+    mapper.map(field, kfs, [0, 1, 2], first=True)
+    return cfg, field, dirs
+
+
+def test_tracking_recovers_perturbed_pose(fitted_map, room_sequence):
+    cfg, field, dirs = fitted_map
+    cfg.tracking.iterations = 100
+    cfg.tracking.lr_translation = 0.003
+    cfg.tracking.lr_rotation = 0.002
+    ds = room_sequence
+    frame = prepare_frame(ds[9], ds.intrinsics, cfg.camera)
+    gt = frame.gt_pose
+    start = gt.copy()
+    start[:3, :3] = axis_angle([0.3, 1.0, -0.2], 3.0) @ gt[:3, :3]
+    start[:3, 3] += np.array([0.02, -0.015, 0.015])  # 3 cm
+    assert np.linalg.norm(start[:3, 3] - gt[:3, 3]) == pytest.approx(0.029, abs=0.002)
+    tracker = Tracker(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width)
+    result = tracker.track(field, frame, torch.from_numpy(start).float())
+    est = result.pose.double().numpy()
+    t_err = np.linalg.norm(est[:3, 3] - gt[:3, 3])
+    r_err = rotation_angle_deg(est[:3, :3].T @ gt[:3, :3])
+    assert t_err < 0.01, f"translation error {t_err * 100:.2f} cm"
+    assert r_err < 0.5, f"rotation error {r_err:.2f} deg"
+
+
+def test_constant_velocity_repeats_last_motion():
+    a = np.eye(4)
+    b = np.eye(4)
+    b[:3, :3] = axis_angle([0, 0, 1], 2.0)
+    b[:3, 3] = [0.01, 0.0, 0.02]
+    c = constant_velocity(a, b)
+    assert np.allclose(np.linalg.inv(b) @ c, np.linalg.inv(a) @ b)
+    assert np.allclose(constant_velocity(None, b), b)
+
+
+def test_outlier_mask_drops_large_depth_errors():
+    err = torch.tensor([0.01, 0.012, 0.009, 0.011, 0.5])
+    assert outlier_mask(err, 10.0).tolist() == [True, True, True, True, False]
