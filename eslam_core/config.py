@@ -129,6 +129,9 @@ class LossWeights:
 
 @dataclass
 class TrackingConfig:
+    # "render": the paper's tracker, Adam on the rendering losses. "sdf": Gauss-Newton alignment of the
+    # back-projected depth to the map's SDF (one SDF query per pixel instead of a rendered ray; the `fast` preset).
+    method: str = "render"
     iterations: int = 8
     rays: int = 2000
     lr_rotation: float = 0.001
@@ -137,8 +140,11 @@ class TrackingConfig:
     outlier_factor: float = 10.0  # drop rays whose depth error exceeds this times the batch median
     constant_velocity: bool = True
     weights: LossWeights = field(default_factory=lambda: LossWeights(10.0, 200.0, 50.0, 1.0, 5.0))
+    huber: float = 0.01  # metres; robust scale of the SDF residuals ("sdf" method)
 
     def validate(self, check) -> None:
+        check(self.method in ("render", "sdf"), "tracking.method", "must be 'render' or 'sdf'")
+        check(self.huber > 0, "tracking.huber", "must be positive (metres)")
         check(self.iterations >= 0, "tracking.iterations", "must be >= 0")
         check(self.rays > 0, "tracking.rays", "must be positive")
         check(self.lr_rotation >= 0 and self.lr_translation >= 0, "tracking.lr_rotation", "must be >= 0")

@@ -21,7 +21,7 @@ from .field import SceneField
 from .frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
 from .keyframes import Keyframe, select_window
 from .mapping import Mapper
-from .tracking import Tracker, constant_velocity
+from .tracking import constant_velocity, make_tracker
 
 log = logging.getLogger("eslam")
 
@@ -53,7 +53,7 @@ class SLAM:
         self.input_intrinsics = intrinsics
         self.intr = working_intrinsics(intrinsics, cfg.camera)
         self.dirs_cam = pixel_directions_table(self.intr)
-        self.tracker = Tracker(cfg, self.dirs_cam, self.intr.height, self.intr.width)
+        self.tracker = make_tracker(cfg, self.dirs_cam, self.intr.height, self.intr.width)
         self.mapper = Mapper(cfg, self.dirs_cam, self.intr.height, self.intr.width)
         self.field: Optional[SceneField] = None
         self.bound: Optional[np.ndarray] = None
@@ -106,7 +106,15 @@ class SLAM:
         self.records.append(FrameRecord(pf.index, pf.timestamp, ref, rel, loss, pf.gt_pose))
 
     def _first_frame(self, pf: PreparedFrame) -> StepResult:
-        """Fix the first pose (ground truth when known, so outputs share its frame), set the bound, map the frame."""
+        """Start the map from the first frame and map it alone (the warm-up)."""
+        pose0 = self._start_map(pf)
+        res = self.mapper.map(self.field, self.keyframes, [0], first=True)
+        return StepResult(pf.index, pose0, 0.0, True, res.loss)
+
+    def _start_map(self, pf: PreparedFrame) -> np.ndarray:
+        """Fix the first pose (ground truth when known, so outputs share its frame), set the bound, create the
+        field and make the frame the first keyframe; returns the first pose. (The multi-process runtime's tracker
+        calls this too and leaves the warm-up to its mapper process.)"""
         pose0 = pf.gt_pose if pf.gt_pose is not None else np.eye(4)
         self.bound = self._scene_bound(pf, pose0)
         self.field = SceneField(self.bound, self.cfg.model)
@@ -115,8 +123,7 @@ class SLAM:
         usable = self._usable_pixels(pf, pose, count=True)
         self.keyframes.append(Keyframe.from_tensors(pf.index, pf.timestamp, pf.rgb, pf.depth, usable, pose))
         self._record(pf, 0, np.eye(4), 0.0)
-        res = self.mapper.map(self.field, self.keyframes, [0], first=True)
-        return StepResult(pf.index, pose0, 0.0, True, res.loss)
+        return pose0
 
     def _scene_bound(self, pf: PreparedFrame, pose0: np.ndarray) -> np.ndarray:
         step = self.cfg.model.coarse_resolution

@@ -89,3 +89,12 @@ class Tracker:
                 loss.backward()
                 optim.step()
         return TrackingResult(best_pose, best_loss, len(candidates))
+
+
+def make_tracker(cfg: Config, dirs_cam: torch.Tensor, height: int, width: int):
+    """The tracker the config asks for: the paper's rendering tracker or the fast SDF alignment."""
+    if cfg.tracking.method == "sdf":
+        from .sdf_tracking import SDFTracker
+
+        return SDFTracker(cfg, dirs_cam, height, width)
+    return Tracker(cfg, dirs_cam, height, width)

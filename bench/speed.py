@@ -1,0 +1,220 @@
+"""Speed benchmark: per-iteration cost of tracking and mapping, split by stage, and whole-run throughput.
+
+    python bench/speed.py --data ../shared/data/icl_office_kt0 [--kind icl] [--frames 40] [--repeats 5]
+    python bench/speed.py                      # the synthetic room when no data is given
+
+For each preset (paper-faithful `icl`/`replica` settings and `fast`) it measures, on real frames and a warmed-up
+map: the median time of a tracking and a mapping iteration split into plane lookup / decoders / rendering / losses /
+backward / optimizer step; the same iterations with the plain-torch plane lookup instead of the fused C kernel (a
+ratio measured in the same run); plane memory; and frames per second, ATE and peak memory of whole runs (each in
+its own process, so peak memory is the run's own). Prints a table and writes JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from eslam_core.config import load_config  # noqa: E402
+from eslam_core.datasets import open_dataset  # noqa: E402
+from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics  # noqa: E402
+from eslam_core.geometry import params_to_pose, pose_to_params  # noqa: E402
+from eslam_core.keyframes import Keyframe  # noqa: E402
+from eslam_core.losses import eslam_losses  # noqa: E402
+from eslam_core.mapping import Mapper  # noqa: E402
+from eslam_core.rendering import alpha_from_sdf, render_weights, sample_depths  # noqa: E402
+from eslam_core.slam import SLAM  # noqa: E402
+
+# The official implementation on this machine kind (2 cores, CPU), from ../shared/reference/eslam_facts.md.
+OFFICIAL = {"tracking_iteration_s": (0.27, 0.45), "mapping_iteration_s": (1.6, 2.4)}
+STAGES = ("lookup", "decoders", "rendering", "losses", "backward", "step")
+
+
+class Stopwatch:
+    def __init__(self):
+        self.times = {s: 0.0 for s in STAGES}
+        self.t = time.perf_counter()
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.times[stage] += now - self.t
+        self.t = now
+
+
+def staged_iteration(field, origins, dirs, d_gt, rgb_gt, cfg, weights, optim) -> dict:
+    """One optimisation iteration, the same computation as rendering.render_rays + losses, timed by stage."""
+    sw = Stopwatch()
+    z = sample_depths(field, origins.detach(), dirs.detach(), d_gt, cfg.render, cfg.model.truncation)
+    pts = (origins[:, None, :] + z[..., None] * dirs[:, None, :]).reshape(-1, 3)
+    sw.lap("rendering")
+    fg = field.geometry_planes(pts)
+    fa = field.appearance_planes(pts)
+    sw.lap("lookup")
+    sdf = field.geometry_decoder(fg).reshape(z.shape)
+    rgb = field.appearance_decoder(fa).reshape(z.shape + (3,))
+    sw.lap("decoders")
+    w = render_weights(alpha_from_sdf(sdf, field.beta))
+    from eslam_core.rendering import RenderOutput
+
+    out = RenderOutput(z, sdf, w, (w * z).sum(-1), (w[..., None] * rgb).sum(-2))
+    sw.lap("rendering")
+    loss = eslam_losses(out, d_gt, rgb_gt, cfg.model.truncation).total(weights)
+    sw.lap("losses")
+    optim.zero_grad(set_to_none=True)
+    loss.backward()
+    sw.lap("backward")
+    optim.step()
+    sw.lap("step")
+    return sw.times
+
+
+def median_stages(samples: list[dict]) -> dict:
+    out = {s: statistics.median(x[s] for x in samples) for s in STAGES}
+    out["total"] = statistics.median(sum(x.values()) for x in samples)
+    return out
+
+
+def iteration_benchmark(cfg, ds, repeats: int, native: bool) -> dict:
+    """Median tracking and mapping iteration times on a map warmed up on the first frames."""
+    torch.manual_seed(0)
+    slam = SLAM(cfg, ds.intrinsics)
+    cfg.mapping.first_iterations, keep = 30, cfg.mapping.first_iterations
+    slam.step(ds[0])
+    cfg.mapping.first_iterations = keep
+    field = slam.field
+    for planes in (field.geometry_planes, field.appearance_planes):
+        planes.use_native = native
+    intr = working_intrinsics(ds.intrinsics, cfg.camera)
+    dirs_cam = pixel_directions_table(intr)
+    frame = prepare_frame(ds[min(4, len(ds) - 1)], ds.intrinsics, cfg.camera)
+    pose = torch.from_numpy(slam.pose(0)).float()
+
+    # Tracking: pose parameters only, the map frozen.
+    depth = frame.depth.reshape(-1)
+    valid = torch.nonzero(depth > 0).squeeze(1)
+    t, q = (p.requires_grad_(True) for p in pose_to_params(pose))
+    optim = torch.optim.Adam([t, q], lr=1e-3, betas=(0.5, 0.999))
+    for p in field.parameters():
+        p.requires_grad_(False)
+    track = []
+    for _ in range(repeats + 1):
+        pix = valid[torch.randint(len(valid), (cfg.tracking.rays,))]
+        c2w = params_to_pose(t, q)
+        dirs = dirs_cam[pix] @ c2w[:3, :3].T
+        track.append(staged_iteration(field, c2w[:3, 3].expand(len(pix), 3), dirs, depth[pix],
+                                      frame.rgb.reshape(-1, 3)[pix], cfg, cfg.tracking.weights, optim))
+    for p in field.parameters():
+        p.requires_grad_(True)
+    field.beta.requires_grad_(cfg.model.learn_beta)
+
+    # Mapping: planes, decoders and poses of a window of keyframes.
+    kfs = [Keyframe.from_tensors(i, 0.0, frame.rgb, frame.depth, frame.depth >= 0, pose) for i in range(5)]
+    mapper = Mapper(cfg, dirs_cam, intr.height, intr.width)
+    groups = [{"params": field.decoder_parameters(), "lr": 1e-3}, {"params": field.plane_parameters(), "lr": 5e-3}]
+    optim = torch.optim.Adam(groups)
+    mapping = []
+    per = cfg.mapping.rays // len(kfs)
+    for _ in range(repeats + 1):
+        o, d, dg, cg = [], [], [], []
+        for kf in kfs:
+            pix = mapper._pixels(kf, per)
+            d.append(dirs_cam[pix] @ kf.pose[:3, :3].T)
+            o.append(kf.pose[:3, 3].expand(len(pix), 3))
+            dg.append(kf.depths(pix))
+            cg.append(kf.colors(pix))
+        mapping.append(staged_iteration(field, torch.cat(o), torch.cat(d), torch.cat(dg), torch.cat(cg), cfg,
+                                         cfg.mapping.weights, optim))
+    params = field.parameter_count()
+    return {"tracking": median_stages(track[1:]), "mapping": median_stages(mapping[1:]),
+            "parameters": params, "plane_memory_mb": sum(p.numel() for p in field.plane_parameters()) * 4 / 2**20,
+            "optimizer_state_mb": 2 * params * 4 / 2**20}
+
+
+def whole_run(preset: str, data: Path, kind: str, frames: int, extra: list[str]) -> dict:
+    """`eslam run` in its own process: frames per second, ATE and the process's own peak memory."""
+    with tempfile.TemporaryDirectory() as out:
+        cmd = [sys.executable, "-m", "eslam_core", "run", "--config", preset, "--data", str(data), "--out", out,
+               "--frames", f"0:{frames}", "--no-mesh", "-q", "--set", f"dataset.kind={kind}", *extra]
+        t0 = time.perf_counter()
+        res = subprocess.run(cmd, capture_output=True, text=True,
+                             env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parent.parent)))
+        wall = time.perf_counter() - t0
+        if res.returncode != 0:
+            return {"error": res.stderr[-2000:]}
+        s = json.loads((Path(out) / "summary.json").read_text())
+    return {"frames": s["frames_this_run"], "seconds_per_frame": s["seconds_per_frame"],
+            "frames_per_second": s["frames_per_second"], "ate_rmse_cm": s["ate_rmse_cm"],
+            "peak_memory_mb": s["peak_memory_mb"], "wall_s": wall, "workers": extra}
+
+
+def fmt_ms(x: float) -> str:
+    return f"{1000 * x:8.1f}"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, help="data set folder (default: the synthetic room, generated)")
+    ap.add_argument("--kind", default=None, help="data set kind (default: icl for icl_* folders, else auto)")
+    ap.add_argument("--presets", default="icl,fast", help="comma-separated presets to measure")
+    ap.add_argument("--repeats", type=int, default=5, help="iterations per median")
+    ap.add_argument("--frames", type=int, default=40, help="frames per whole run (0 = skip whole runs)")
+    ap.add_argument("--workers", default="1", help="comma-separated worker counts for whole runs, e.g. 1,2")
+    ap.add_argument("--out", type=Path, default=Path("bench_speed.json"))
+    args = ap.parse_args()
+
+    if args.data is None:
+        from eslam_core.synthetic import ensure_scene
+
+        args.data = ensure_scene(Path.home() / ".cache" / "eslam" / "scenes", n_frames=60, width=640, height=480)
+        kind = "tum"
+    else:
+        kind = args.kind or ("icl" if "icl" in args.data.name else "auto")
+    results = {"data": str(args.data), "threads": torch.get_num_threads(), "official_reference": OFFICIAL,
+               "load_average_start": os.getloadavg(), "presets": {}}
+    for preset in args.presets.split(","):
+        cfg = load_config(preset, {"dataset": {"kind": kind}})
+        ds = open_dataset(args.data, cfg.dataset.kind, depth_scale=cfg.camera.depth_scale)
+        r = {"native": iteration_benchmark(load_config(preset, {"dataset": {"kind": kind}}), ds, args.repeats, True),
+             "torch": iteration_benchmark(load_config(preset, {"dataset": {"kind": kind}}), ds, args.repeats, False)}
+        r["runs"] = [whole_run(preset, args.data, kind, args.frames, ["--workers", w] if w != "1" else [])
+                     for w in args.workers.split(",")] if args.frames else []
+        results["presets"][preset] = r
+    results["load_average_end"] = os.getloadavg()
+    args.out.write_text(json.dumps(results, indent=2))
+
+    print(f"data: {args.data}   torch threads: {results['threads']}   load avg: {results['load_average_start']}")
+    print(f"official implementation (reference, this machine kind): tracking iteration "
+          f"{OFFICIAL['tracking_iteration_s']} s, mapping iteration {OFFICIAL['mapping_iteration_s']} s")
+    for preset, r in results["presets"].items():
+        print(f"\n== {preset}: {r['native']['parameters'] / 1e6:.2f} M parameters, planes "
+              f"{r['native']['plane_memory_mb']:.1f} MB (+ Adam state {r['native']['optimizer_state_mb']:.1f} MB)")
+        print(f"{'ms per iteration':22s}" + "".join(f"{s:>9s}" for s in STAGES) + f"{'total':>9s}{'vs torch':>9s}")
+        for phase in ("tracking", "mapping"):
+            n, t = r["native"][phase], r["torch"][phase]
+            print(f"{phase + ' (fused)':22s}" + "".join(fmt_ms(n[s]) + " " for s in STAGES)
+                  + fmt_ms(n["total"]) + f"{t['total'] / n['total']:8.1f}x")
+            print(f"{phase + ' (torch)':22s}" + "".join(fmt_ms(t[s]) + " " for s in STAGES) + fmt_ms(t["total"]))
+        for run in r["runs"]:
+            if "error" in run:
+                print(f"whole run failed: {run['error']}")
+                continue
+            print(f"whole run {run['workers'] or ['--workers', '1']}: {run['frames']} frames, "
+                  f"{run['frames_per_second']:.2f} frames/s ({run['seconds_per_frame']:.2f} s/frame), "
+                  f"ATE {run['ate_rmse_cm']} cm, peak memory {run['peak_memory_mb']:.0f} MB")
+    print(f"\nJSON -> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
