@@ -47,6 +47,18 @@ def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
     return q.reshape(R.shape[:-2] + (4,))
 
 
+def quaternion_xyzw_to_matrix(q) -> np.ndarray:
+    """numpy (..., 4) quaternion in the (x, y, z, w) order of TUM files and ROS messages -> (..., 3, 3) rotation."""
+    q = torch.as_tensor(np.asarray(q, dtype=np.float64))
+    return quaternion_to_matrix(q[..., [3, 0, 1, 2]]).numpy()
+
+
+def matrix_to_quaternion_xyzw(R) -> np.ndarray:
+    """numpy (..., 3, 3) rotation -> (..., 4) unit quaternion (x, y, z, w) with w >= 0."""
+    q = matrix_to_quaternion(torch.as_tensor(np.asarray(R, dtype=np.float64)))
+    return q[..., [1, 2, 3, 0]].numpy()
+
+
 def pose_to_params(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(..., 4, 4) camera-to-world -> translation (..., 3), quaternion (..., 4)."""
     return T[..., :3, 3].clone(), matrix_to_quaternion(T[..., :3, :3])

@@ -29,6 +29,7 @@ from PIL import Image
 from scipy import ndimage
 
 from .camera import Intrinsics
+from .geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
 from .raycast import camera_rays, cast_rays
 
 FPS = 30.0  # frame rate of written sequences: timestamps are index / FPS
@@ -666,38 +667,8 @@ def render_frame(
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def rotation_to_quaternion(rot: np.ndarray) -> np.ndarray:
-    """Unit quaternion (qx, qy, qz, qw), qw >= 0, of a 3x3 rotation matrix (Shepperd's method: stable for any
-    angle, because it divides by the largest of the four candidate components)."""
-    m = np.asarray(rot, dtype=np.float64)
-    trace = np.trace(m)
-    diag = np.diag(m)
-    if trace >= diag.max():
-        w = math.sqrt(1.0 + trace) / 2.0
-        q = np.array([(m[2, 1] - m[1, 2]) / (4 * w), (m[0, 2] - m[2, 0]) / (4 * w), (m[1, 0] - m[0, 1]) / (4 * w), w])
-    else:
-        i = int(np.argmax(diag))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = math.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k]) * 2.0  # s = 4 |q_i|
-        q = np.empty(4)
-        q[i] = s / 4.0
-        q[j] = (m[j, i] + m[i, j]) / s
-        q[k] = (m[k, i] + m[i, k]) / s
-        q[3] = (m[k, j] - m[j, k]) / s
-    q /= np.linalg.norm(q)
-    return q if q[3] >= 0 else -q
-
-
-def quaternion_to_rotation(q) -> np.ndarray:
-    """3x3 rotation matrix of a quaternion (qx, qy, qz, qw); it is normalised first."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+rotation_to_quaternion = matrix_to_quaternion_xyzw
+quaternion_to_rotation = quaternion_xyzw_to_matrix
 
 
 def frame_rng(seed: int, index: int) -> np.random.Generator:

@@ -17,6 +17,7 @@ from typing import Optional
 import numpy as np
 
 from eslam_core.camera import Intrinsics
+from eslam_core.geometry import quaternion_xyzw_to_matrix
 from eslam_core.datasets.base import (
     DatasetError,
     FrameRecord,
@@ -53,17 +54,9 @@ ICL_Y_FLIP = np.diag([1.0, -1.0, 1.0, 1.0])
 def rotation_from_quaternion(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:
     """3x3 rotation of a (not necessarily normalised) Hamilton quaternion."""
     q = np.array([qx, qy, qz, qw], dtype=np.float64)
-    norm = np.linalg.norm(q)
-    if not norm > 0:
+    if not np.linalg.norm(q) > 0:
         raise ValueError("quaternion has zero length")
-    x, y, z, w = q / norm
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    return quaternion_xyzw_to_matrix(q)
 
 
 def pose_from_tum(tx: float, ty: float, tz: float, qx: float, qy: float, qz: float, qw: float) -> np.ndarray:

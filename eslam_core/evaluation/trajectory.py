@@ -16,6 +16,8 @@ from typing import Union
 
 import numpy as np
 
+from ..geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
+
 PathLike = Union[str, Path]
 
 
@@ -56,43 +58,8 @@ class Trajectory:
 # Quaternions (x, y, z, w), Hamilton convention as in the TUM tools.
 
 
-def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4) given as (x, y, z, w)."""
-    x, y, z, w = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
-def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix.
-
-    Built from the largest of the four candidate components, so it stays accurate for all rotations.
-    """
-    r = np.asarray(rotation, dtype=np.float64)
-    trace = np.trace(r)
-    candidates = np.array([r[0, 0], r[1, 1], r[2, 2], trace])
-    largest = int(np.argmax(candidates))
-    if largest == 3:
-        w = 0.5 * np.sqrt(1.0 + trace)
-        q = np.array([(r[2, 1] - r[1, 2]), (r[0, 2] - r[2, 0]), (r[1, 0] - r[0, 1]), 0.0]) / (4 * w)
-        q[3] = w
-    else:
-        i = largest
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 0.5 * np.sqrt(max(1.0 + r[i, i] - r[j, j] - r[k, k], 0.0))
-        q = np.zeros(4)
-        q[i] = s
-        q[j] = (r[j, i] + r[i, j]) / (4 * s)
-        q[k] = (r[k, i] + r[i, k]) / (4 * s)
-        q[3] = (r[k, j] - r[j, k]) / (4 * s)
-    q /= np.linalg.norm(q)
-    return q if q[3] >= 0 else -q
+quaternion_to_rotation = quaternion_xyzw_to_matrix
+rotation_to_quaternion = matrix_to_quaternion_xyzw
 
 
 def rotation_angle(rotation: np.ndarray) -> np.ndarray:
