@@ -36,5 +36,6 @@ setup(
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
         "test": ["pytest"],
     },
-    entry_points={"console_scripts": ["eslam = eslam_core.cli:main"]},
+    # `slam_node` serves both installs: pip puts it on PATH, colcon (setup.cfg) in lib/eslam_ros for `ros2 run`.
+    entry_points={"console_scripts": ["eslam = eslam_core.cli:main", "slam_node = eslam_ros.slam_node:main"]},
 )

@@ -234,21 +234,26 @@ def preset_path(name: str) -> Path:
     """Path of a shipped preset (`replica`, `icl`, ...), looked up in the source tree or the installed package."""
     for d in PRESET_DIRS:
         p = d / f"{name}.yaml"
-        if p.exists():
+        if p.exists() and _is_preset(p.read_text()):
             return p
     packaged = resources.files("eslam_core") / "presets" / f"{name}.yaml"
-    if packaged.is_file():
+    if packaged.is_file() and _is_preset(packaged.read_text()):
         return Path(str(packaged))
     raise ConfigError(f"unknown preset '{name}': give a path to a YAML file or one of {', '.join(list_presets())}")
+
+
+def _is_preset(text: str) -> bool:
+    return "ros__parameters" not in text  # config/ also holds the ROS node's parameter file
 
 
 def list_presets() -> list[str]:
     names = set()
     for d in PRESET_DIRS:
-        names.update(p.stem for p in d.glob("*.yaml"))
+        names.update(p.stem for p in d.glob("*.yaml") if _is_preset(p.read_text()))
     packaged = resources.files("eslam_core") / "presets"
     if packaged.is_dir():
-        names.update(Path(p.name).stem for p in packaged.iterdir() if p.name.endswith(".yaml"))
+        names.update(Path(p.name).stem for p in packaged.iterdir()
+                     if p.name.endswith(".yaml") and _is_preset(p.read_text()))
     return sorted(names)
 
 

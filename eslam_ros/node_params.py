@@ -1,0 +1,245 @@
+"""The SLAM node's ROS parameters, and how they become an eslam_core configuration.
+
+The node has two kinds of parameters:
+
+- *Node settings* (`NodeSettings`): frames, QoS, synchronizer, output directory, publishing periods. Each field
+  below names its ROS parameter (e.g. `sync.queue_size`) and says what it does.
+- *ESLAM settings*: every leaf of `eslam_core.config.Config`, named `eslam.<section>.<key>`, e.g.
+  `eslam.tracking.iterations` or `eslam.mapping.weights.depth`. `eslam.scene.bound` is the one list-valued key;
+  ROS parameters cannot nest lists, so it is given flat: [xmin, ymin, zmin, xmax, ymax, zmax].
+
+Where the ESLAM configuration comes from, later entries winning:
+  1. the shipped preset named by `preset` (fast, replica, tum, icl, scannet, demo), or, when `config_file` is set,
+     that YAML file instead (it names its own base preset with `extends:`);
+  2. every `eslam.*` parameter given in a parameter file or on the command line.
+The node declares every `eslam.*` parameter with the value of step 1 as its default, so `ros2 param list / get`
+shows the configuration actually in use. The result is validated by the configuration's own checks.
+
+The functions here are pure (no rclpy), so they are usable and testable without a running node.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Union
+
+from eslam_core.config import Config, ConfigError, config_from_dict, load_config
+
+ESLAM_PREFIX = "eslam."
+# A value a ROS 2 parameter can hold (None = PARAMETER_NOT_SET).
+ParamValue = Union[None, bool, int, float, str, list]
+# Config keys whose value is [[x, y, z], [x, y, z]]: flat 6-number arrays as ROS parameters.
+_BOX_KEYS = ("scene.bound",)
+
+QOS_CHOICES = ("sensor_data", "reliable")
+POLICY_CHOICES = ("live", "offline")
+
+
+class NodeParameterError(ValueError):
+    """A ROS parameter of the node has a wrong type or an impossible value; the message names it and the fix."""
+
+
+def _param(default: Any, name: str, doc: str) -> Any:
+    """A NodeSettings field: its default, its ROS parameter name and its description (`ros2 param describe`)."""
+    return field(default=default, metadata={"param": name, "doc": doc})
+
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """What the node does around the SLAM core. Field metadata: ROS parameter name and description."""
+
+    preset: str = _param("fast", "preset", "eslam_core preset the configuration starts from (fast: live use on a "
+                                           "CPU; replica, tum, icl, scannet, demo: the paper's settings)")
+    config_file: str = _param("", "config_file", "eslam_core YAML file used instead of `preset` (it may `extends:` "
+                                                 "a preset); empty = use the preset")
+    map_frame: str = _param("map", "map_frame", "frame_id of published poses, path and mesh (the first camera pose)")
+    output_dir: str = _param("eslam_output", "output_dir", "folder for saved trajectory, mesh and checkpoint "
+                                                           "(services and shutdown)")
+    workers: int = _param(2, "workers", "SLAM runtime processes: 2 = tracking and mapping in parallel processes, "
+                                        "1 = in-process")
+    policy: str = _param("live", "policy", "live: track the newest frame, drop frames while busy; offline: queue "
+                                           "every frame (the node falls behind a fast camera)")
+    input_qos: str = _param("sensor_data", "input_qos", "QoS of the input subscriptions: sensor_data (best effort, "
+                                                        "matches every publisher) or reliable")
+    input_queue_depth: int = _param(30, "input_queue_depth", "history depth of the input subscriptions (30: a "
+                                                             "second at 30 Hz, so a busy node counts the frames it "
+                                                             "drops instead of losing them in DDS)")
+    sync_queue_size: int = _param(10, "sync.queue_size", "messages kept per stream while pairing rgb and depth")
+    sync_max_interval: float = _param(0.02, "sync.max_interval", "largest stamp difference (s) of a paired rgb and "
+                                                                 "depth image; 0 = no limit")
+    sync_age_penalty: float = _param(0.1, "sync.age_penalty", "message_filters' age penalty: larger pairs sooner, "
+                                                              "slightly worse matches")
+    sync_idle_flush: float = _param(0.5, "sync.idle_flush", "seconds without images after which the pending pair is "
+                                                            "emitted (end of stream); 0 = never")
+    depth_scale: float = _param(0.0, "depth_scale", "depth units per metre of the depth images; 0 = by encoding "
+                                                    "(16UC1/mono16: 1000, 32FC1: 1)")
+    mesh_period: float = _param(5.0, "mesh_period", "seconds between mesh publications on ~/mesh; 0 = never")
+    mesh_resolution: float = _param(0.0, "mesh_resolution", "voxel size (m) of the published and saved meshes; "
+                                                            "0 = eslam.mesh.resolution")
+    mesh_triangle_budget: int = _param(100_000, "mesh_triangle_budget", "most triangles published on ~/mesh "
+                                                                        "(evenly thinned above it)")
+    path_period: float = _param(1.0, "path_period", "seconds between ~/path publications")
+    status_period: float = _param(1.0, "status_period", "seconds between ~/status publications")
+    publish_tf: bool = _param(True, "publish_tf", "broadcast map_frame -> camera frame on /tf (when tf2_ros is "
+                                                  "installed)")
+    tf_child_frame: str = _param("", "tf_child_frame", "child frame of the TF and of ~/odom; empty = the image "
+                                                       "header's frame_id")
+    log_throttle: float = _param(5.0, "log_throttle", "seconds between two log lines about the same kind of "
+                                                      "skipped frame")
+    time_jump_reset: float = _param(1.0, "time_jump_reset", "a stamp this many seconds older than the last one "
+                                                            "starts a new stream and resets the map (a bag "
+                                                            "looped); 0 = never reset, skip such frames")
+    save_on_shutdown: bool = _param(True, "save_on_shutdown", "save trajectory, mesh and checkpoint to output_dir "
+                                                              "on Ctrl-C / SIGTERM")
+
+    def validate(self) -> "NodeSettings":
+        def check(ok: bool, attribute: str, message: str) -> None:
+            if not ok:
+                name = _FIELD_TO_PARAM[attribute]
+                raise NodeParameterError(
+                    f"ROS parameter '{name}' = {getattr(self, attribute)!r}: {message} (set it in the parameter "
+                    f"file or with --ros-args -p {name}:=...)"
+                )
+
+        check(self.workers >= 1, "workers", "must be >= 1")
+        check(self.policy in POLICY_CHOICES, "policy", f"must be one of {', '.join(POLICY_CHOICES)}")
+        check(self.input_qos in QOS_CHOICES, "input_qos", f"must be one of {', '.join(QOS_CHOICES)}")
+        check(self.input_queue_depth >= 1, "input_queue_depth", "must be >= 1")
+        check(self.sync_queue_size >= 1, "sync_queue_size", "must be >= 1")
+        check(self.map_frame.strip() != "", "map_frame", "must be a frame name such as 'map'")
+        check(self.output_dir.strip() != "", "output_dir", "must name a folder")
+        for attribute in ("sync_max_interval", "sync_age_penalty", "sync_idle_flush", "depth_scale", "mesh_period",
+                          "mesh_resolution", "log_throttle", "time_jump_reset"):
+            value = getattr(self, attribute)
+            check(math.isfinite(value) and value >= 0, attribute, "must be a number >= 0")
+        for attribute in ("path_period", "status_period"):
+            value = getattr(self, attribute)
+            check(math.isfinite(value) and value > 0, attribute, "must be a positive number of seconds")
+        check(self.mesh_triangle_budget >= 1, "mesh_triangle_budget", "must be >= 1")
+        return self
+
+
+_FIELD_TO_PARAM = {f.name: f.metadata["param"] for f in dataclasses.fields(NodeSettings)}
+
+
+def node_parameter_defaults() -> dict[str, tuple[Any, str]]:
+    """{ROS parameter name: (default value, description)} of every node setting."""
+    return {f.metadata["param"]: (f.default, f.metadata["doc"]) for f in dataclasses.fields(NodeSettings)}
+
+
+def settings_from_parameters(values: Mapping[str, Any]) -> NodeSettings:
+    """NodeSettings from {ROS parameter name: value}; missing names keep their defaults.
+
+    Types are checked here rather than by rclpy, so that `mesh_period: 5` (an integer) is accepted where a float
+    is expected and a wrong type gets a message naming the parameter.
+    """
+    kwargs = {}
+    for f in dataclasses.fields(NodeSettings):
+        name = f.metadata["param"]
+        if name not in values or values[name] is None:
+            continue
+        kwargs[f.name] = _typed(values[name], type(f.default), name)
+    return NodeSettings(**kwargs).validate()
+
+
+def _typed(value: Any, expected: type, name: str) -> Any:
+    if expected is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
+        raise NodeParameterError(
+            f"ROS parameter '{name}' must be of type {expected.__name__}, got {value!r} "
+            f"({type(value).__name__}); fix the parameter file or the -p {name}:=... argument"
+        )
+    return value
+
+
+# ------------------------------------------------------------------------------------------ ESLAM configuration
+
+
+def base_config(settings: NodeSettings) -> Config:
+    """The configuration before any eslam.* parameter: the config file if one is set, else the preset."""
+    if settings.config_file:
+        path = Path(settings.config_file).expanduser()
+        if not path.is_file():
+            raise ConfigError(
+                f"ROS parameter 'config_file' names {path}, which does not exist; give the path of an eslam_core "
+                f"YAML file, or leave it empty to use the preset '{settings.preset}'"
+            )
+        return load_config(path)
+    return load_config(settings.preset)
+
+
+def config_parameters(cfg: Config) -> dict[str, ParamValue]:
+    """{`eslam.<section>.<key>`: value} of every leaf of `cfg`, in values a ROS parameter can hold."""
+    flat: dict[str, ParamValue] = {}
+    _flatten(dataclasses.asdict(cfg), "", flat)
+    return {ESLAM_PREFIX + key: value for key, value in flat.items()}
+
+
+def _flatten(node: Mapping[str, Any], prefix: str, out: dict[str, ParamValue]) -> None:
+    for name, value in node.items():
+        key = prefix + name
+        if isinstance(value, dict):
+            _flatten(value, key + ".", out)
+        elif key in _BOX_KEYS and value is not None:
+            out[key] = [float(v) for corner in value for v in corner]
+        else:
+            out[key] = value
+
+
+def config_from_parameters(values: Mapping[str, ParamValue], source: str) -> Config:
+    """Config from {`eslam.<section>.<key>`: value} of every leaf (as `config_parameters` names them).
+
+    `source` names where the values came from, for the configuration's error messages.
+    """
+    nested: dict[str, Any] = {}
+    for name, value in values.items():
+        if not name.startswith(ESLAM_PREFIX):
+            raise NodeParameterError(f"'{name}' is not an ESLAM parameter: their names start with '{ESLAM_PREFIX}'")
+        key = name[len(ESLAM_PREFIX):]
+        if key in _BOX_KEYS and value is not None:
+            value = _box(value, name)
+        node = nested
+        parts = key.split(".")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = list(value) if isinstance(value, (list, tuple)) else value
+    return config_from_dict(nested, source)
+
+
+def _box(value: Any, name: str) -> list[list[float]]:
+    numbers = list(value) if isinstance(value, (list, tuple)) else []
+    if len(numbers) != 6 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in numbers):
+        raise NodeParameterError(
+            f"ROS parameter '{name}' must be 6 numbers [xmin, ymin, zmin, xmax, ymax, zmax] (metres), got {value!r}"
+        )
+    return [[float(v) for v in numbers[:3]], [float(v) for v in numbers[3:]]]
+
+
+def unknown_eslam_parameters(given: Mapping[str, Any], cfg: Config) -> list[str]:
+    """Names among `given` that start with `eslam.` but are no configuration key (typos would be ignored)."""
+    known = set(config_parameters(cfg))
+    return sorted(name for name in given if name.startswith(ESLAM_PREFIX) and name not in known)
+
+
+def unknown_parameter_error(name: str, cfg: Config) -> NodeParameterError:
+    """The error for an `eslam.*` parameter that names no configuration key, listing its section's keys."""
+    section = name.rsplit(".", 1)[0] + "."
+    siblings = sorted(k[len(section):] for k in config_parameters(cfg) if k.startswith(section))
+    hint = f"known keys of {section[:-1]}: {', '.join(siblings)}" if siblings else (
+        "sections: " + ", ".join(sorted({k.split('.')[1] for k in config_parameters(cfg)})))
+    return NodeParameterError(f"unknown ESLAM parameter '{name}' ({hint}); fix the parameter file")
+
+
+def resolve_config(settings: NodeSettings, overrides: Mapping[str, ParamValue]) -> Config:
+    """The node's configuration: `base_config(settings)` with `overrides` (eslam.* parameter values) applied."""
+    base = base_config(settings)
+    unknown = unknown_eslam_parameters(overrides, base)
+    if unknown:
+        raise unknown_parameter_error(unknown[0], base)
+    values = config_parameters(base)
+    values.update(overrides)
+    origin = f"config file {settings.config_file}" if settings.config_file else f"preset '{settings.preset}'"
+    return config_from_parameters(values, f"ROS parameters eslam.* over {origin}")

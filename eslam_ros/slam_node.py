@@ -1,0 +1,929 @@
+"""The ESLAM ROS 2 node: RGB-D images in; poses, path, mesh and health out.
+
+Data flow
+    rgb/image   --+
+                  +-- approximate-time pairing -- convert and check -- Frame -- runtime.submit
+    depth/image --+          (InputPipeline)          ^
+                                                      +-- latest rgb/camera_info (cached, not paired)
+    runtime.poll()        -> ~/pose, ~/odom, TF      (every 10 ms)
+    runtime.trajectory()  -> ~/path                  (refined keyframe poses included, every path_period)
+    runtime.save_mesh()   -> ~/mesh                  (transient local, every mesh_period, under a triangle budget)
+    runtime.health()      -> ~/status                (diagnostic_msgs/DiagnosticArray, every status_period)
+    services ~/save_mesh, ~/save_trajectory, ~/save_checkpoint, ~/reset (std_srvs/Trigger)
+
+Frames and conventions
+    ESLAM poses are camera-to-world in the camera's *optical* frame (x right, y down, z forward): REP 103's
+    `<camera>_optical_frame`, the frame_id drivers put on image headers. A published pose is the pose of the image
+    header's frame_id in `map_frame`; `map_frame` is the optical frame of the first camera pose (so its y axis
+    points down). Every output is stamped with the stamp of the rgb image it was computed from.
+
+Anything wrong with an input (unsupported encoding, inconsistent sizes, no camera info yet, a stamp going back in
+time) skips that frame with one throttled log line per kind of problem, and is counted in ~/status. The node
+keeps running.
+
+Run: `ros2 run eslam_ros slam_node --ros-args --params-file config/slam_node.yaml -r rgb/image:=...` or, after a
+pip install, `slam_node --ros-args ...` (see docs/ros.md).
+"""
+from __future__ import annotations
+
+import math
+import signal
+import sys
+import tempfile
+import threading
+import time
+import traceback
+from collections import deque
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence, Union
+
+import numpy as np
+import rclpy
+import trimesh
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped, TransformStamped, Vector3
+from nav_msgs.msg import Odometry, Path as PathMsg
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import CameraInfo, Image
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+from eslam_core.camera import Frame, Intrinsics
+from eslam_core.config import Config, ConfigError
+from eslam_core.runtime import RuntimeCrashed, make_runtime
+from eslam_ros.conversions import (
+    InvalidCameraInfoError,
+    InvalidPoseError,
+    MalformedImageError,
+    UnsupportedImageError,
+    image_to_depth,
+    image_to_rgb,
+    intrinsics_from_camera_info,
+    pose_to_msg,
+    sec_to_stamp,
+    stamp_to_sec,
+    to_time,
+)
+from eslam_ros.mesh_markers import serialize_mesh_marker_array
+from eslam_ros.node_params import (
+    ESLAM_PREFIX,
+    NodeParameterError,
+    NodeSettings,
+    config_from_parameters,
+    config_parameters,
+    base_config,
+    node_parameter_defaults,
+    settings_from_parameters,
+    unknown_eslam_parameters,
+    unknown_parameter_error,
+)
+from eslam_ros.qos import input_qos, latched_qos, output_qos, use_shipped_fastdds_profile
+from eslam_ros.sync import ApproximateTimeSynchronizer
+
+try:  # TF needs tf2_msgs, which only a real ROS installation provides
+    from tf2_ros import TransformBroadcaster
+except ImportError:
+    TransformBroadcaster = None
+
+RGB, DEPTH = 0, 1  # stream indices in the synchronizer
+STREAM_NAMES = ("rgb/image", "depth/image")
+EXIT_OK, EXIT_FAILED, EXIT_BAD_PARAMETERS, EXIT_INTERRUPTED = 0, 1, 2, 130
+# Frames kept while the runtime starts (seconds, when it spawns workers); older ones are dropped and counted.
+MAX_HELD_FRAMES = 30
+# At shutdown with the live policy: how long the frame in progress may take before the runtime is stopped.
+LIVE_DRAIN_TIMEOUT_S = 10.0
+
+
+# ================================================================================================= input pipeline
+
+
+class SkipReason(str, Enum):
+    """Why an input was not turned into a frame; the value is the counter's name in ~/status."""
+
+    UNSUPPORTED_ENCODING = "unsupported_encoding"
+    MALFORMED_IMAGE = "malformed_image"
+    SIZE_MISMATCH = "size_mismatch"
+    NO_CAMERA_INFO = "no_camera_info"
+    INVALID_CAMERA_INFO = "invalid_camera_info"  # counts camera-info messages, not frames
+    INTRINSICS_CHANGED = "intrinsics_changed"
+    NON_MONOTONIC_STAMP = "non_monotonic_stamp"  # counts image messages, not frames
+
+
+@dataclass(frozen=True)
+class AcceptedFrame:
+    """A paired, converted and checked RGB-D frame, ready for the SLAM runtime."""
+
+    frame: Frame
+    stamp: Any  # builtin_interfaces/Time of the rgb image: the stamp of every output computed from it
+    frame_id: str  # the rgb image's frame (the camera's optical frame)
+    intrinsics: Intrinsics
+    received: float  # time.monotonic() when the message completing the pair arrived
+
+
+@dataclass(frozen=True)
+class SkippedInput:
+    reason: SkipReason
+    message: str
+
+
+@dataclass(frozen=True)
+class StreamRestart:
+    """Stamps jumped back by `jump` seconds (e.g. a bag started over): what follows is a new stream."""
+
+    jump: float
+
+
+PipelineEvent = Union[AcceptedFrame, SkippedInput, StreamRestart]
+
+
+class InputPipeline:
+    """Messages in, frames out: pairs rgb and depth images, converts them and checks them against the camera.
+
+    Holds no ROS node, so the live node and the offline bag runner (`eslam bag run`) share it. Every problem is
+    returned as a SkippedInput event (and counted in `skipped`) instead of raised.
+
+    depth_scale: depth units per metre (None: by encoding, REP 118). fixed_intrinsics: use these instead of
+    camera-info messages. time_jump_reset: a stamp at least this many seconds older than its stream's last one
+    restarts the stream (None: such messages are skipped like any other non-monotonic stamp).
+    """
+
+    def __init__(
+        self,
+        *,
+        queue_size: int = 10,
+        max_interval: Optional[float] = 0.02,
+        age_penalty: float = 0.1,
+        depth_scale: Optional[float] = None,
+        fixed_intrinsics: Optional[Intrinsics] = None,
+        time_jump_reset: Optional[float] = 1.0,
+    ) -> None:
+        self.sync = ApproximateTimeSynchronizer(2, queue_size, max_interval, age_penalty)
+        self.depth_scale = depth_scale
+        self.fixed_intrinsics = fixed_intrinsics
+        self.time_jump_reset = time_jump_reset
+        self.camera_infos: dict[str, Intrinsics] = {}  # latest valid camera info per frame_id
+        self.latest_info: Optional[Intrinsics] = None
+        # The intrinsics of the first accepted frame (the map is built for them): later frames must have the same.
+        self.intrinsics: Optional[Intrinsics] = fixed_intrinsics
+        self.frames_accepted = 0
+        self.pairs = 0
+        self.skipped: dict[str, int] = {reason.value: 0 for reason in SkipReason}
+        self._last_stamp: list[Optional[float]] = [None, None]
+        self._received: list[float] = [0.0, 0.0]  # arrival of the newest message per stream
+        # Pairs that came before any camera info (drivers start the streams together, in no particular order):
+        # they wait, at most queue_size of them, and are assembled when the first camera info arrives.
+        self._awaiting_info: deque[tuple[Any, Any, float]] = deque()
+
+    # -------------------------------------------------------------------------------------------- inputs
+
+    def add_camera_info(self, msg: Any) -> list[PipelineEvent]:
+        try:
+            intrinsics = intrinsics_from_camera_info(msg)
+        except InvalidCameraInfoError as error:
+            return [self._skip(SkipReason.INVALID_CAMERA_INFO, f"camera info on rgb/camera_info ignored: {error}")]
+        self.camera_infos[msg.header.frame_id] = intrinsics
+        self.latest_info = intrinsics
+        events: list[PipelineEvent] = []
+        while self._awaiting_info:
+            events.append(self._assemble(*self._awaiting_info.popleft()))
+        return events
+
+    def add_image(self, stream: int, msg: Any, received: Optional[float] = None) -> list[PipelineEvent]:
+        """Queue an rgb (stream RGB) or depth (stream DEPTH) image; returns the frames and skips it caused."""
+        received = time.monotonic() if received is None else received
+        stamp = stamp_to_sec(msg.header.stamp)
+        events: list[PipelineEvent] = []
+        last = self._last_stamp[stream]
+        if last is not None and stamp < last:
+            jump = last - stamp
+            if self.time_jump_reset is None or jump < self.time_jump_reset:
+                return [self._skip(
+                    SkipReason.NON_MONOTONIC_STAMP,
+                    f"{STREAM_NAMES[stream]} stamp {stamp:.6f} s is {jump:.6f} s older than the previous one: message "
+                    f"skipped (the publisher's clock went back; restamp it or replay the bag in order)",
+                )]
+            events += self.flush()  # the old stream's last pair, then start afresh
+            events.append(StreamRestart(jump))
+            self._last_stamp = [None, None]
+        self._last_stamp[stream] = stamp
+        self._received[stream] = received
+        for rgb_msg, depth_msg in self.sync.add(stream, stamp, msg):
+            events += self._pair(rgb_msg, depth_msg, max(self._received))
+        return events
+
+    def flush(self) -> list[PipelineEvent]:
+        """End of stream (or a pause): emit the pending pair(s). Stamps must still go on increasing afterwards."""
+        events: list[PipelineEvent] = []
+        for rgb_msg, depth_msg in self.sync.flush():
+            events += self._pair(rgb_msg, depth_msg, max(self._received))
+        while self._awaiting_info:
+            rgb_msg = self._awaiting_info.popleft()[0]
+            events.append(self._skip(SkipReason.NO_CAMERA_INFO, self._no_info_message(rgb_msg)))
+        return events
+
+    @property
+    def unpaired(self) -> dict[str, int]:
+        """Images dropped by the synchronizer because no partner close enough in time arrived."""
+        return {"unpaired_rgb": self.sync.dropped[RGB], "unpaired_depth": self.sync.dropped[DEPTH]}
+
+    # -------------------------------------------------------------------------------------------- pairs
+
+    def _pair(self, rgb_msg: Any, depth_msg: Any, received: float) -> list[PipelineEvent]:
+        """A pair from the synchronizer: assembled now, or held until the first camera info arrives."""
+        self.pairs += 1
+        if self.fixed_intrinsics is not None or self.latest_info is not None:
+            return [self._assemble(rgb_msg, depth_msg, received)]
+        self._awaiting_info.append((rgb_msg, depth_msg, received))
+        if len(self._awaiting_info) > self.sync.queue_size:
+            return [self._skip(SkipReason.NO_CAMERA_INFO, self._no_info_message(self._awaiting_info.popleft()[0]))]
+        return []
+
+    @staticmethod
+    def _no_info_message(rgb_msg: Any) -> str:
+        return (f"frame skipped: no camera info received yet for frame '{rgb_msg.header.frame_id}'; remap "
+                f"rgb/camera_info to the colour camera's camera_info topic (or set eslam.camera.fx/fy/cx/cy/width/"
+                f"height)")
+
+    def _assemble(self, rgb_msg: Any, depth_msg: Any, received: float) -> PipelineEvent:
+        try:
+            rgb = image_to_rgb(rgb_msg)
+            depth = image_to_depth(depth_msg, self.depth_scale)
+        except UnsupportedImageError as error:
+            return self._skip(SkipReason.UNSUPPORTED_ENCODING, f"frame skipped: {error}")
+        except MalformedImageError as error:
+            return self._skip(SkipReason.MALFORMED_IMAGE, f"frame skipped: {error}")
+        height, width = rgb.shape[:2]
+        if depth.shape != (height, width):
+            return self._skip(
+                SkipReason.SIZE_MISMATCH,
+                f"frame skipped: rgb is {width}x{height} but depth is {depth.shape[1]}x{depth.shape[0]}; the depth "
+                f"image must be registered to the colour image (e.g. realsense2_camera align_depth.enable:=true, "
+                f"and remap depth/image to the aligned depth topic)",
+            )
+        frame_id = rgb_msg.header.frame_id
+        intrinsics = self.fixed_intrinsics or self.camera_infos.get(frame_id) or self.latest_info
+        if (intrinsics.width, intrinsics.height) != (width, height):
+            return self._skip(
+                SkipReason.SIZE_MISMATCH,
+                f"frame skipped: images are {width}x{height} but the camera info says "
+                f"{intrinsics.width}x{intrinsics.height}; remap rgb/camera_info to the camera_info of the rgb topic",
+            )
+        if self.intrinsics is None:
+            self.intrinsics = intrinsics
+        elif intrinsics != self.intrinsics:
+            return self._skip(
+                SkipReason.INTRINSICS_CHANGED,
+                f"frame skipped: camera intrinsics changed from {self.intrinsics} to {intrinsics}; the map is built "
+                f"with the first ones: restart the node to use the new calibration",
+            )
+        frame = Frame(index=self.frames_accepted, timestamp=stamp_to_sec(rgb_msg.header.stamp), rgb=rgb,
+                      depth=depth, pose=None)
+        self.frames_accepted += 1
+        return AcceptedFrame(frame, to_time(rgb_msg.header.stamp), frame_id, intrinsics, received)
+
+    def _skip(self, reason: SkipReason, message: str) -> SkippedInput:
+        self.skipped[reason.value] += 1
+        return SkippedInput(reason, message)
+
+
+class LogThrottle:
+    """At most one log line per key every `period` seconds."""
+
+    def __init__(self, period: float) -> None:
+        self.period = period
+        self._last: dict[str, float] = {}
+
+    def allow(self, key: str, now: Optional[float] = None) -> bool:
+        now = time.monotonic() if now is None else now
+        last = self._last.get(key)
+        if last is not None and now - last < self.period:
+            return False
+        self._last[key] = now
+        return True
+
+
+# ================================================================================================= output messages
+
+
+def twist_between(pose_a: np.ndarray, t_a: float, pose_b: np.ndarray, t_b: float) -> tuple[np.ndarray, np.ndarray]:
+    """(linear, angular) velocity of the camera moving from pose_a to pose_b, in the camera frame of pose_b.
+
+    Finite differences: linear = R_b^T (t_b - t_a) / dt; angular = rotation vector of R_a^T R_b / dt. Zero when
+    dt <= 0 (the first pose, or equal stamps).
+    """
+    dt = t_b - t_a
+    if dt <= 0:
+        return np.zeros(3), np.zeros(3)
+    linear = pose_b[:3, :3].T @ (pose_b[:3, 3] - pose_a[:3, 3]) / dt
+    angular = Rotation.from_matrix(pose_a[:3, :3].T @ pose_b[:3, :3]).as_rotvec() / dt
+    return linear, angular
+
+
+def pose_stamped(pose: np.ndarray, stamp: Any, frame_id: str) -> PoseStamped:
+    msg = PoseStamped(pose=pose_to_msg(pose))
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    return msg
+
+
+def odometry(pose: np.ndarray, twist: tuple[np.ndarray, np.ndarray], stamp: Any, frame_id: str,
+             child_frame_id: str) -> Odometry:
+    msg = Odometry(child_frame_id=child_frame_id)
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.pose.pose = pose_to_msg(pose)
+    linear, angular = twist
+    msg.twist.twist.linear = Vector3(x=float(linear[0]), y=float(linear[1]), z=float(linear[2]))
+    msg.twist.twist.angular = Vector3(x=float(angular[0]), y=float(angular[1]), z=float(angular[2]))
+    return msg
+
+
+def transform(pose: np.ndarray, stamp: Any, frame_id: str, child_frame_id: str) -> TransformStamped:
+    p = pose_to_msg(pose)
+    msg = TransformStamped(child_frame_id=child_frame_id)
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.transform.translation = Vector3(x=p.position.x, y=p.position.y, z=p.position.z)
+    msg.transform.rotation = p.orientation
+    return msg
+
+
+def path_message(timestamps: np.ndarray, poses: np.ndarray, frame_id: str) -> PathMsg:
+    msg = PathMsg()
+    msg.header.frame_id = frame_id
+    msg.poses = [pose_stamped(pose, sec_to_stamp(t), frame_id) for t, pose in zip(timestamps, poses)]
+    if len(msg.poses):
+        msg.header.stamp = msg.poses[-1].header.stamp
+    return msg
+
+
+def diagnostics(name: str, level: bytes, summary: str, values: dict[str, Any], stamp: Any) -> DiagnosticArray:
+    status = DiagnosticStatus(level=level, name=name, message=summary, hardware_id="eslam")
+    status.values = [KeyValue(key=key, value=_diagnostic_value(value)) for key, value in values.items()]
+    msg = DiagnosticArray(status=[status])
+    msg.header.stamp = stamp
+    return msg
+
+
+def _diagnostic_value(value: Any) -> str:
+    if isinstance(value, float):
+        return "nan" if math.isnan(value) else f"{value:.6g}"
+    return str(value)
+
+
+# ================================================================================================= the node
+
+
+class CallbackGate:
+    """Counts the node's callbacks in progress, so that shutdown can wait for them, and turns new ones away once
+    closed. (rclpy's MultiThreadedExecutor.shutdown does not wait for callbacks running on its threads.)
+
+    An exception escaping a callback would stop the executor, and with it the node: the gate hands it to
+    `on_error` instead.
+    """
+
+    def __init__(self, on_error: Callable[[BaseException], None]) -> None:
+        self._condition = threading.Condition()
+        self._running = 0
+        self._on_error = on_error
+        self.closed = False
+
+    def wrap(self, callback: Callable[..., Any], when_closed: Optional[Callable[..., Any]] = None) -> Callable:
+        def gated(*args: Any) -> Any:
+            with self._condition:
+                if self.closed:
+                    return when_closed(*args) if when_closed else None
+                self._running += 1
+            try:
+                return callback(*args)
+            except Exception as error:  # noqa: BLE001 - reported, and the node goes on (or stops, if SLAM died)
+                self._on_error(error)
+                return when_closed(*args) if when_closed else None
+            finally:
+                with self._condition:
+                    self._running -= 1
+                    self._condition.notify_all()
+
+        return gated
+
+    def close(self, timeout: float) -> bool:
+        """Refuse new callbacks; True once none is running (False if `timeout` seconds passed first)."""
+        with self._condition:
+            self.closed = True
+            return self._condition.wait_for(lambda: self._running == 0, timeout)
+
+
+def _refused(request: Any, response: Any) -> Any:
+    response.success, response.message = False, "the node is shutting down or failed; see its log"
+    return response
+
+
+@dataclass
+class _Submitted:
+    """What the node remembers of a frame handed to the runtime, until its pose comes back."""
+
+    stamp: Any
+    frame_id: str
+    received: float
+
+
+@dataclass
+class _Latency:
+    """Seconds from the arrival of a frame's images at the node to the publication of its pose."""
+
+    count: int = 0
+    total: float = 0.0
+    last: float = float("nan")
+    worst: float = 0.0
+
+    def add(self, seconds: float) -> None:
+        self.count += 1
+        self.total += seconds
+        self.last = seconds
+        self.worst = max(self.worst, seconds)
+
+    @property
+    def mean(self) -> float:
+        return self.total / self.count if self.count else float("nan")
+
+
+@dataclass
+class _Outputs:
+    """Counters of what the node published (for ~/status)."""
+
+    poses: int = 0
+    paths: int = 0
+    meshes: int = 0
+    mesh_triangles: int = 0
+    restarts: int = 0
+    dropped_while_starting: int = 0
+    latency: _Latency = field(default_factory=_Latency)
+
+
+class SlamNode(Node):
+    """The ROS 2 node; see the module docstring for its topics, services and conventions."""
+
+    def __init__(self, node_name: str = "slam_node", **node_kwargs: Any) -> None:
+        super().__init__(node_name, **node_kwargs)
+        self.settings, self.config = self._declare_parameters()
+        s = self.settings
+        self.output_dir = Path(s.output_dir).expanduser()
+        self.pipeline = InputPipeline(
+            queue_size=s.sync_queue_size,
+            max_interval=s.sync_max_interval or None,
+            age_penalty=s.sync_age_penalty,
+            depth_scale=s.depth_scale or None,
+            fixed_intrinsics=configured_intrinsics(self.config),
+            time_jump_reset=s.time_jump_reset or None,
+        )
+        # The runtime needs the camera, so it starts with the first accepted frame, on a thread of its own (spawning
+        # workers takes seconds, and the input callbacks must keep taking messages meanwhile). Frames accepted while
+        # it starts wait in `_held` (the newest MAX_HELD_FRAMES of them).
+        self.runtime = None
+        self._starter: Optional[threading.Thread] = None
+        self._held: deque[AcceptedFrame] = deque()
+        self.failed: Optional[str] = None  # set when the runtime crashed: the node then stops with an error
+        self.outputs = _Outputs()
+        self._throttle = LogThrottle(s.log_throttle)
+        # Pose bookkeeping, shared by the input thread and the services' thread (reset).
+        self._lock = threading.Lock()
+        self._submitted: dict[int, _Submitted] = {}
+        self._previous_pose: Optional[tuple[np.ndarray, float]] = None
+        self._last_image = time.monotonic()
+        self._skipped_at_last_status = 0
+        self._poses_at_last_status = (0, time.monotonic())
+        self._mesh_map_version: Any = None
+
+        # Inputs, poses, path and status on one thread (in order); slow work (mesh, services) on another.
+        self._io = MutuallyExclusiveCallbackGroup()
+        self._slow = MutuallyExclusiveCallbackGroup()
+        self.gate = CallbackGate(on_error=self._on_callback_error)
+        gate = self.gate.wrap
+        qos_in = input_qos(s.input_qos, s.input_queue_depth)
+        self.create_subscription(Image, "rgb/image", gate(lambda m: self._on_image(RGB, m)), qos_in,
+                                 callback_group=self._io)
+        self.create_subscription(Image, "depth/image", gate(lambda m: self._on_image(DEPTH, m)), qos_in,
+                                 callback_group=self._io)
+        self.create_subscription(CameraInfo, "rgb/camera_info", gate(self._on_camera_info), qos_in,
+                                 callback_group=self._io)
+
+        self.pose_pub = self.create_publisher(PoseStamped, "~/pose", output_qos())
+        self.odom_pub = self.create_publisher(Odometry, "~/odom", output_qos())
+        self.path_pub = self.create_publisher(PathMsg, "~/path", output_qos(1))
+        self.mesh_pub = self.create_publisher(MarkerArray, "~/mesh", latched_qos())
+        self.status_pub = self.create_publisher(DiagnosticArray, "~/status", output_qos())
+        self.tf_broadcaster = TransformBroadcaster(self) if (s.publish_tf and TransformBroadcaster) else None
+
+        self.create_timer(0.01, gate(self._publish_poses), callback_group=self._io)
+        self.create_timer(s.path_period, gate(self._publish_path), callback_group=self._io)
+        self.create_timer(s.status_period, gate(self._publish_status), callback_group=self._io)
+        if s.sync_idle_flush > 0:
+            self.create_timer(min(0.1, s.sync_idle_flush), gate(self._flush_if_idle), callback_group=self._io)
+        if s.mesh_period > 0:
+            self.create_timer(s.mesh_period, gate(self._publish_mesh), callback_group=self._slow)
+        for name, handler in (("~/save_mesh", self._srv_save_mesh), ("~/save_trajectory", self._srv_save_trajectory),
+                              ("~/save_checkpoint", self._srv_save_checkpoint), ("~/reset", self._srv_reset)):
+            self.create_service(Trigger, name, gate(handler, when_closed=_refused), callback_group=self._slow)
+
+        self.add_on_set_parameters_callback(self._refuse_parameter_changes)
+        self.get_logger().info(
+            f"ESLAM node ready: {'config file ' + s.config_file if s.config_file else 'preset ' + s.preset}, "
+            f"{s.workers} worker(s), {s.policy} policy, input QoS {s.input_qos}, poses in '{s.map_frame}', "
+            f"outputs to {self.output_dir.resolve()}; waiting for rgb/image, depth/image and rgb/camera_info"
+        )
+
+    # ------------------------------------------------------------------------------------------ parameters
+
+    def _declare_parameters(self) -> tuple[NodeSettings, Config]:
+        """Declare every node and ESLAM parameter (so `ros2 param list` shows them) and read them back."""
+        dynamic = dict(dynamic_typing=True)  # types are checked by settings_from_parameters / the config
+        for name, (default, doc) in node_parameter_defaults().items():
+            self.declare_parameter(name, default, ParameterDescriptor(description=doc, **dynamic))
+        settings = settings_from_parameters(
+            {name: self.get_parameter(name).value for name in node_parameter_defaults()})
+
+        base = base_config(settings)
+        # rclpy silently ignores overrides of undeclared parameters: catch misspelt eslam.* keys here.
+        given = getattr(self, "_parameter_overrides", {})
+        unknown = unknown_eslam_parameters(given, base)
+        if unknown:
+            raise unknown_parameter_error(unknown[0], base)
+        defaults = config_parameters(base)
+        for name, default in defaults.items():
+            self.declare_parameter(name, default, ParameterDescriptor(
+                description=f"ESLAM setting {name[len(ESLAM_PREFIX):]} (see eslam_core.config)", **dynamic))
+        origin = f"config file {settings.config_file}" if settings.config_file else f"preset '{settings.preset}'"
+        config = config_from_parameters({name: self.get_parameter(name).value for name in defaults},
+                                        f"ROS parameters eslam.* over {origin}")
+        return settings, config
+
+    def _refuse_parameter_changes(self, parameters: list) -> SetParametersResult:
+        names = ", ".join(p.name for p in parameters)
+        return SetParametersResult(successful=False, reason=(
+            f"{names}: parameters are read at start-up only; restart the node with the new value"))
+
+    # ------------------------------------------------------------------------------------------ inputs
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        self._handle(self.pipeline.add_camera_info(msg))
+
+    def _on_image(self, stream: int, msg: Image) -> None:
+        self._last_image = time.monotonic()
+        self._handle(self.pipeline.add_image(stream, msg, self._last_image))
+
+    def _flush_if_idle(self) -> None:
+        """No image for a while: the stream ended (or paused), so the pending pair will not get a better match."""
+        if self.pipeline.sync.pending and time.monotonic() - self._last_image > self.settings.sync_idle_flush:
+            self._handle(self.pipeline.flush())
+
+    def _handle(self, events: Sequence[PipelineEvent]) -> None:
+        for event in events:
+            if isinstance(event, AcceptedFrame):
+                self._submit(event)
+            elif isinstance(event, SkippedInput):
+                if self._throttle.allow(event.reason.value):
+                    self.get_logger().warning(f"{event.message} [{event.reason.value}: "
+                                              f"{self.pipeline.skipped[event.reason.value]} so far]")
+            elif isinstance(event, StreamRestart):
+                self.outputs.restarts += 1
+                self.get_logger().warning(f"image stamps jumped back by {event.jump:.3f} s (a bag started over?): "
+                                          f"resetting the map")
+                self._reset_runtime()
+
+    def _start_runtime(self, intrinsics: Intrinsics) -> None:
+        """Runs on the starter thread; the pipeline has fixed the intrinsics to these."""
+        s = self.settings
+        self.get_logger().info(f"starting the SLAM runtime ({s.workers} worker(s), {s.policy}) for {intrinsics}")
+        try:
+            runtime = make_runtime(self.config, intrinsics, workers=s.workers, policy=s.policy)
+            runtime.start()
+        except (RuntimeCrashed, ValueError) as error:
+            self._fail(f"the SLAM runtime did not start: {error}")
+            return
+        self.runtime = runtime
+        self.get_logger().info("SLAM runtime running")
+
+    def _submit(self, accepted: AcceptedFrame) -> None:
+        if self.failed:
+            return
+        if self.runtime is None:
+            if self._starter is None:
+                self._starter = threading.Thread(target=self._start_runtime, args=(accepted.intrinsics,),
+                                                 name="eslam-runtime-start", daemon=True)
+                self._starter.start()
+            self._held.append(accepted)
+            if len(self._held) > MAX_HELD_FRAMES:
+                self._held.popleft()
+                self.outputs.dropped_while_starting += 1
+            return
+        self._submit_held()
+        self._submit_now(accepted)
+
+    def _submit_held(self) -> None:
+        while self._held and self.runtime is not None and not self.failed:
+            self._submit_now(self._held.popleft())
+
+    def _submit_now(self, accepted: AcceptedFrame) -> None:
+        with self._lock:
+            self._submitted[accepted.frame.index] = _Submitted(accepted.stamp, accepted.frame_id, accepted.received)
+        try:
+            self.runtime.submit(accepted.frame)
+        except RuntimeCrashed as error:
+            self._fail(f"the SLAM runtime crashed: {error}")
+
+    # ------------------------------------------------------------------------------------------ outputs
+
+    def _publish_poses(self) -> None:
+        if self.runtime is None or self.failed:
+            return
+        self._submit_held()  # frames that arrived while the runtime was starting
+        try:
+            updates = self.runtime.poll()
+        except RuntimeCrashed as error:
+            self._fail(f"the SLAM runtime crashed: {error}")
+            return
+        for update in updates:
+            self._publish_pose(update)
+
+    def _publish_pose(self, update: Any) -> None:
+        with self._lock:
+            submitted = self._submitted.pop(update.index, None)
+            # Frames before this one that got no pose were dropped by the live policy: forget them.
+            for index in [i for i in self._submitted if i < update.index]:
+                del self._submitted[index]
+            previous = self._previous_pose
+            self._previous_pose = (update.pose, update.timestamp)
+        if submitted is None:  # a frame from before a reset
+            return
+        stamp, map_frame = submitted.stamp, self.settings.map_frame
+        child = self.settings.tf_child_frame or submitted.frame_id
+        twist = twist_between(previous[0], previous[1], update.pose, update.timestamp) if previous else (
+            np.zeros(3), np.zeros(3))
+        try:
+            pose, odom = pose_stamped(update.pose, stamp, map_frame), odometry(update.pose, twist, stamp, map_frame,
+                                                                               child)
+        except InvalidPoseError as error:
+            if self._throttle.allow("invalid_pose"):
+                self.get_logger().error(f"pose of frame {update.index} not published: {error}")
+            return
+        self.pose_pub.publish(pose)
+        self.odom_pub.publish(odom)
+        if self.tf_broadcaster is not None:
+            self.tf_broadcaster.sendTransform(transform(update.pose, stamp, map_frame, child))
+        self.outputs.poses += 1
+        self.outputs.latency.add(time.monotonic() - submitted.received)
+
+    def _publish_path(self) -> None:
+        if self.runtime is None or self.failed:
+            return
+        timestamps, poses = self.runtime.trajectory()
+        finite = np.isfinite(poses).all(axis=(1, 2)) if len(timestamps) else np.zeros(0, bool)
+        if finite.any():
+            self.path_pub.publish(path_message(timestamps[finite], poses[finite], self.settings.map_frame))
+            self.outputs.paths += 1
+
+    def _publish_mesh(self) -> None:
+        runtime = self.runtime
+        if runtime is None or self.failed:
+            return
+        version = runtime.health().as_dict().get("map_version")
+        if version is not None and version == self._mesh_map_version:
+            return  # the map has not changed since the last mesh
+        with tempfile.TemporaryDirectory(prefix="eslam_mesh_") as folder:
+            path = Path(folder) / "mesh.ply"
+            try:
+                runtime.save_mesh(path, resolution=self._mesh_resolution())
+            except ValueError as error:  # e.g. nothing mapped yet: an empty mesh
+                self.get_logger().info(f"no mesh to publish yet: {error}", throttle_duration_sec=30.0)
+                return
+            mesh = trimesh.load(path, process=False)
+        colors = mesh.visual.vertex_colors[:, :3] if mesh.visual.kind == "vertex" else None
+        data = serialize_mesh_marker_array(mesh.vertices, mesh.faces, colors,
+                                           self.settings.map_frame, self.get_clock().now().to_msg(),
+                                           ns="eslam_mesh", triangle_budget=self.settings.mesh_triangle_budget)
+        self.mesh_pub.publish(data)
+        self._mesh_map_version = version
+        self.outputs.meshes += 1
+        self.outputs.mesh_triangles = min(len(mesh.faces), self.settings.mesh_triangle_budget)
+
+    def _mesh_resolution(self) -> Optional[float]:
+        return self.settings.mesh_resolution or None
+
+    def health(self) -> dict[str, Any]:
+        """The runtime's health figures and the node's counters, as published on ~/status."""
+        state = "failed" if self.failed else "running" if self.runtime else "starting" if self._starter else "waiting"
+        values: dict[str, Any] = {"runtime": state}
+        if self.runtime is not None and not self.failed:
+            values.update(self.runtime.health().as_dict())
+        values["frames_accepted"] = self.pipeline.frames_accepted
+        values["pairs"] = self.pipeline.pairs
+        values.update(self.pipeline.unpaired)
+        values.update({f"skipped_{reason}": count for reason, count in self.pipeline.skipped.items()})
+        values["skipped_total"] = sum(self.pipeline.skipped.values())
+        values["poses_published"] = self.outputs.poses
+        values["meshes_published"] = self.outputs.meshes
+        values["mesh_triangles"] = self.outputs.mesh_triangles
+        values["stream_restarts"] = self.outputs.restarts
+        values["frames_dropped_while_starting"] = self.outputs.dropped_while_starting
+        values["latency_ms_receive_to_pose_last"] = 1000 * self.outputs.latency.last
+        values["latency_ms_receive_to_pose_mean"] = 1000 * self.outputs.latency.mean
+        values["latency_ms_receive_to_pose_max"] = 1000 * self.outputs.latency.worst
+        return values
+
+    def _publish_status(self) -> None:
+        values = self.health()
+        now = time.monotonic()
+        poses_before, since = self._poses_at_last_status
+        values["pose_rate_hz"] = (self.outputs.poses - poses_before) / max(now - since, 1e-9)
+        self._poses_at_last_status = (self.outputs.poses, now)
+        skipped_now = values["skipped_total"] - self._skipped_at_last_status
+        self._skipped_at_last_status = values["skipped_total"]
+        if self.failed:
+            level, summary = DiagnosticStatus.ERROR, self.failed
+        elif self.runtime is None:
+            level, summary = DiagnosticStatus.WARN, ("starting the SLAM runtime" if self._starter else
+                                                     "waiting for the first rgb + depth + camera info")
+        elif skipped_now:
+            level, summary = DiagnosticStatus.WARN, f"{skipped_now} input(s) skipped in the last period"
+        else:
+            level, summary = DiagnosticStatus.OK, f"tracking, {self.outputs.poses} poses published"
+        self.status_pub.publish(diagnostics(f"{self.get_name()}: ESLAM", level, summary, values,
+                                            self.get_clock().now().to_msg()))
+
+    # ------------------------------------------------------------------------------------------ services
+
+    def _srv_save_mesh(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        return self._save(response, "mesh.ply", lambda rt, p: rt.save_mesh(p, resolution=self._mesh_resolution()))
+
+    def _srv_save_trajectory(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        return self._save(response, "trajectory.txt", lambda rt, p: rt.save_trajectory(p))
+
+    def _srv_save_checkpoint(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        return self._save(response, "checkpoint.pt", lambda rt, p: rt.save_checkpoint(p))
+
+    def _srv_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        if self.runtime is None:
+            response.success, response.message = False, "nothing to reset: no frame received yet"
+            return response
+        self._reset_runtime()
+        response.success, response.message = True, "map and trajectory cleared; the next frame starts a new map"
+        return response
+
+    def _save(self, response: Trigger.Response, name: str, save: Any) -> Trigger.Response:
+        if self.runtime is None or self.failed:
+            response.success = False
+            response.message = self.failed or "nothing to save yet: no frame has been received"
+            return response
+        path = self.output_dir / name
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            save(self.runtime, path)
+        except (ValueError, OSError, RuntimeCrashed) as error:
+            response.success, response.message = False, f"could not write {path}: {error}"
+            self.get_logger().error(response.message)
+            return response
+        response.success, response.message = True, str(path.resolve())
+        self.get_logger().info(f"wrote {path}")
+        return response
+
+    def _reset_runtime(self) -> None:
+        with self._lock:
+            if self.runtime is not None:
+                self.runtime.reset()
+            self._submitted.clear()
+            self._previous_pose = None
+            self._mesh_map_version = None
+
+    # ------------------------------------------------------------------------------------------ lifecycle
+
+    def _fail(self, message: str) -> None:
+        if self.failed is None:
+            self.get_logger().fatal(message)
+        self.failed = message
+
+    def _on_callback_error(self, error: BaseException) -> None:
+        if isinstance(error, RuntimeCrashed):
+            self._fail(f"the SLAM runtime crashed: {error}")
+        else:
+            self.get_logger().error(f"unexpected error in a callback (the node goes on): {type(error).__name__}: "
+                                    f"{error}\n{traceback.format_exc()}")
+
+    def finish(self, save: bool) -> int:
+        """End of the run: wait for callbacks in progress (a mesh, a service), hand over the pending pair, publish
+        the last poses, stop the runtime and save trajectory, checkpoint and mesh from its final state.
+
+        With the offline policy every submitted frame is tracked first (a second Ctrl-C abandons that); with the
+        live policy the frame in progress is. Returns the process exit status.
+        """
+        if not self.gate.close(timeout=120.0):
+            self.get_logger().warning("a callback is still running after 120 s; shutting down anyway")
+        if self._starter is not None:
+            self._starter.join()  # the runtime bounds its own start-up time
+        runtime = self.runtime
+        if runtime is None:
+            return EXIT_FAILED if self.failed else EXIT_OK
+        try:
+            if not self.failed:
+                self._handle(self.pipeline.flush())
+                self._submit_held()
+                self._drain(math.inf if self.settings.policy == "offline" else LIVE_DRAIN_TIMEOUT_S)
+            runtime.close(timeout=LIVE_DRAIN_TIMEOUT_S)
+        except RuntimeCrashed as error:
+            self._fail(f"the SLAM runtime crashed: {error}")
+            return EXIT_FAILED
+        if save and not self.failed:
+            outputs = (("trajectory.txt", runtime.save_trajectory), ("checkpoint.pt", runtime.save_checkpoint),
+                       ("mesh.ply", lambda p: runtime.save_mesh(p, resolution=self._mesh_resolution())))
+            for name, save_one in outputs:
+                path = self.output_dir / name
+                try:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    save_one(path)
+                    self.get_logger().info(f"wrote {path}")
+                except (ValueError, OSError) as error:
+                    self.get_logger().error(f"could not write {path}: {error}")
+        return EXIT_FAILED if self.failed else EXIT_OK
+
+    def abort(self) -> None:
+        """Stop the runtime at once, saving nothing (a second Ctrl-C)."""
+        if self.runtime is not None:
+            try:
+                self.runtime.close(timeout=0, drain=False)
+            except RuntimeCrashed:
+                pass
+
+    def _drain(self, timeout: float) -> None:
+        """Publish poses until every submitted frame got one (or was dropped), or `timeout` seconds passed."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not self.failed:
+            self._publish_poses()
+            health = self.runtime.health()
+            if health.frames_tracked + health.frames_dropped >= health.frames_received:
+                self._publish_poses()
+                return
+            time.sleep(0.02)
+
+
+def configured_intrinsics(cfg: Config) -> Optional[Intrinsics]:
+    """Intrinsics set in the configuration (eslam.camera.*), which then replace camera-info messages."""
+    c = cfg.camera
+    if c.fx is None:
+        return None
+    return Intrinsics(c.width, c.height, c.fx, c.fy, c.cx, c.cy)
+
+
+# ================================================================================================= process
+
+
+class _StopRequest:
+    """SIGINT / SIGTERM: the first asks the spin loop to stop and save; a second one abandons the saving."""
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    use_shipped_fastdds_profile()
+    # rclpy's own handlers would shut the context down at once; ours let the node save its outputs first.
+    rclpy.init(args=argv if argv is not None else sys.argv, signal_handler_options=SignalHandlerOptions.NO)
+    stop = _StopRequest()
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        node = SlamNode()
+    except (NodeParameterError, ConfigError) as error:
+        rclpy.logging.get_logger("slam_node").fatal(f"invalid parameters: {error}")
+        rclpy.try_shutdown()
+        return EXIT_BAD_PARAMETERS
+    executor = MultiThreadedExecutor(num_threads=2)
+    executor.add_node(node)
+    status = EXIT_INTERRUPTED
+    try:
+        while rclpy.ok() and not stop.requested and not node.failed:
+            executor.spin_once(timeout_sec=0.1)
+        node.get_logger().info("shutting down" + (": saving outputs" if node.settings.save_on_shutdown else ""))
+        status = node.finish(save=node.settings.save_on_shutdown and not node.failed)
+    except KeyboardInterrupt:
+        node.get_logger().warning("interrupted again: outputs not saved")
+        node.abort()
+    finally:
+        executor.shutdown(timeout_sec=0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())
