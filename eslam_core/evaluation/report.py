@@ -92,11 +92,14 @@ def _read_config(path: Optional[Path]) -> Optional[dict]:
 
 
 def find_gt_mesh(data_path: Path) -> Optional[Path]:
-    """The ground-truth mesh next to a data set, NICE-SLAM layout: Replica/office0 -> Replica/office0_mesh.ply."""
-    for candidate in (data_path.parent / f"{data_path.name}_mesh.ply", data_path / f"{data_path.name}_mesh.ply"):
+    """The ground-truth mesh next to a data set: NICE-SLAM layout (Replica/office0 -> Replica/office0_mesh.ply, or a
+    single <scene>_mesh.ply inside the folder given), or `mesh.ply` inside it (the embedded synthetic room)."""
+    for candidate in (data_path.parent / f"{data_path.name}_mesh.ply", data_path / f"{data_path.name}_mesh.ply",
+                      data_path / "mesh.ply"):
         if candidate.is_file():
             return candidate
-    return None
+    inside = sorted(data_path.glob("*_mesh.ply")) if data_path.is_dir() else []
+    return inside[0] if len(inside) == 1 else None
 
 
 # ---------------------------------------------------------------------------------------------------------------
