@@ -60,10 +60,11 @@ def cmd_run(args) -> int:
     ds = open_configured_dataset(cfg, Path(args.data), args.frames, args.stride)
     s = run_sequence(cfg, ds, Path(args.out), data_label=str(Path(args.data).resolve()),
                      frames=(args.frames[0], args.frames[1], args.stride), resume=args.resume,
-                     progress=not args.quiet, write_mesh=not args.no_mesh)
+                     progress=not args.quiet, write_mesh=not args.no_mesh, workers=args.workers, policy=args.policy)
     ate = "n/a (no ground truth)" if s.ate_rmse_cm is None else f"{s.ate_rmse_cm:.2f} cm"
+    stopped = f" (stopped by {s.stopped_by}: trajectory and checkpoint so far)" if s.stopped_by else ""
     print(f"{s.n_frames} frames, {s.seconds_per_frame:.2f} s/frame, ATE RMSE {ate}, "
-          f"peak memory {s.peak_memory_mb:.0f} MB -> {s.out_dir}")
+          f"peak memory {s.peak_memory_mb:.0f} MB -> {s.out_dir}{stopped}")
     return 0
 
 
@@ -93,6 +94,17 @@ def cmd_eval(args) -> int:
     return run_eval(args)
 
 
+def cmd_bag(args) -> int:
+    # The core holds no ROS: the bag tools (and rclpy) are imported only when this command runs.
+    try:
+        from eslam_ros.bag import main as bag_main
+    except ImportError as e:
+        print(f"eslam bag needs the ROS 2 Python packages ({e}); install them with: pip install -e '.[ros]'",
+              file=sys.stderr)
+        return 2
+    return bag_main(args.bag_args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="eslam", description="ESLAM dense RGB-D SLAM (feature planes + TSDF)")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -108,6 +120,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set tracking.iterations=4 (repeatable)")
     r.add_argument("--no-mesh", action="store_true", help="skip mesh extraction")
+    r.add_argument("--workers", type=int, choices=(1, 2), default=1,
+                   help="1: lock-step in this process (default); 2: a tracking and a mapping process in parallel")
+    r.add_argument("--policy", choices=("offline", "live"), default="offline",
+                   help="offline: every frame in order (default); live: frames fed at the data set's frame rate, "
+                        "the tracker skips to the newest when behind (dropped frames are counted)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_run)
 
@@ -134,6 +151,13 @@ def build_parser() -> argparse.ArgumentParser:
         e = sub.add_parser("eval", help="evaluate a run: ATE/RPE, reconstruction, depth L1, plots, report")
         add_eval_arguments(e)
         e.set_defaults(func=cmd_eval)
+
+    # `eslam bag write|play|run ...`: everything after `bag` is parsed by eslam_ros.bag (prefix_chars="\0" keeps
+    # argparse from taking `--help` or `--rate` for options of its own).
+    b = sub.add_parser("bag", help="rosbag2 tools: write a data set as a bag, play a bag, run SLAM on a bag",
+                       add_help=False, prefix_chars="\0")
+    b.add_argument("bag_args", nargs=argparse.REMAINDER)
+    b.set_defaults(func=cmd_bag)
     return p
 
 
@@ -146,6 +170,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except RuntimeError as e:
+        from .runtime import RuntimeCrashed
+
+        if not isinstance(e, RuntimeCrashed):
+            raise
+        # The worker's traceback is already in the log (stderr), written when the crash was detected.
+        print(f"eslam: error: {e.summary}; the run was stopped", file=sys.stderr)
+        return 1
     except (ValueError, FileNotFoundError) as e:
         # Every input problem is raised as a ValueError subclass whose message names the problem and the fix.
         print(f"eslam: error: {e}", file=sys.stderr)

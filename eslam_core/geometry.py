@@ -85,6 +85,16 @@ def rays_to_world(dirs_cam: torch.Tensor, c2w: torch.Tensor) -> tuple[torch.Tens
     return c2w[:, :3, 3], torch.einsum("nij,nj->ni", c2w[:, :3, :3], dirs_cam)
 
 
+def scale_motion(M: np.ndarray, factor: float) -> np.ndarray:
+    """A rigid motion repeated `factor` times (rotation angle and translation scaled): velocity x time."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(M[:3, :3]).as_rotvec() * factor).as_matrix()
+    out[:3, 3] = M[:3, 3] * factor
+    return out
+
+
 def relative_motion(T_prev: np.ndarray, T_cur: np.ndarray) -> np.ndarray:
     """Motion from the previous to the current camera, expressed in the previous camera's frame."""
     return np.linalg.inv(T_prev) @ T_cur

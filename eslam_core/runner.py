@@ -1,9 +1,16 @@
-"""Offline runs: a data set through the SLAM system, with progress, outputs and a summary."""
+"""Offline runs: a data set through the SLAM system, with progress, outputs and a summary.
+
+`workers=1` (default) steps the lock-step `SLAM` here. `workers=2` (or the live policy) feeds the frames through a
+runtime (eslam_core.runtime: tracking and mapping processes) and writes the same outputs; there Ctrl-C / SIGTERM
+stop the run cleanly: the trajectory so far and a checkpoint are written (no mesh) and the run returns normally.
+"""
 from __future__ import annotations
 
 import json
 import logging
 import resource
+import signal
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +39,7 @@ class RunSummary:
     ate_rmse_cm: Optional[float]
     peak_memory_mb: float
     mesh_path: Optional[Path]
+    stopped_by: Optional[str] = None  # the signal that ended the run early (runtime runs), None if it finished
 
 
 def peak_memory_mb() -> float:
@@ -52,13 +60,18 @@ def ate_cm(slam: SLAM) -> Optional[float]:
 
 def run_sequence(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label: str = "",
                  frames: tuple = (0, None, 1), resume: Optional[Path] = None, progress: bool = True,
-                 write_mesh: bool = True) -> RunSummary:
-    """Process `dataset` (already subset to the frames to run) and write every output into `out_dir`."""
+                 write_mesh: bool = True, workers: int = 1, policy: str = "offline") -> RunSummary:
+    """Process `dataset` (already subset to the frames to run) and write every output into `out_dir`.
+
+    workers / policy: see eslam_core.runtime (1 + "offline" = the lock-step schedule in this process)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out_dir / "config.yaml")
     torch.manual_seed(cfg.run.seed)
     apply_threads(cfg)
+    if workers != 1 or policy != "offline":
+        return run_with_runtime(cfg, dataset, out_dir, data_label=data_label, frames=frames, resume=resume,
+                                progress=progress, write_mesh=write_mesh, workers=workers, policy=policy)
 
     if resume is not None:
         slam = load_checkpoint(resume)
@@ -76,8 +89,14 @@ def run_sequence(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label
         elapsed = time.perf_counter() - start
         bar.set_postfix(frame=res.index, fps=f"{(bar.n + 1) / elapsed:.2f}", loss=f"{res.tracking_loss:.4f}")
     seconds = time.perf_counter() - start
-    n = len(todo)
+    return write_outputs(cfg, slam, dataset, out_dir, data_label=data_label, frames=frames, n=len(todo),
+                         seconds=seconds, write_mesh=write_mesh)
 
+
+def write_outputs(cfg: Config, slam: SLAM, dataset: RGBDDataset, out_dir: Path, *, data_label: str, frames: tuple,
+                  n: int, seconds: float, write_mesh: bool, peak_mb: Optional[float] = None,
+                  extra: Optional[dict] = None, stopped_by: Optional[str] = None) -> RunSummary:
+    """Trajectories, checkpoint, mesh and summary.json of a run that processed `n` frames in `seconds`."""
     write_trajectories(slam, out_dir)
     save_checkpoint(slam, out_dir / "checkpoint.pt")
     mesh_path = None
@@ -97,7 +116,7 @@ def run_sequence(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label
         "seconds": seconds,
         "seconds_per_frame": seconds / max(n, 1),
         "frames_per_second": n / seconds if seconds > 0 else None,
-        "peak_memory_mb": peak_memory_mb(),
+        "peak_memory_mb": peak_memory_mb() if peak_mb is None else peak_mb,
         "parameter_count": slam.field.parameter_count() if slam.field is not None else 0,
         "keyframes": len(slam.keyframes),
         "keyframe_memory_mb": sum(kf.nbytes() for kf in slam.keyframes) / 2**20,
@@ -109,6 +128,99 @@ def run_sequence(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label
         "config_file": str(out_dir / "config.yaml"),
         "mesh": str(mesh_path) if mesh_path else None,
         "torch_threads": torch.get_num_threads(),
+        **(extra or {}),
     }
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    return RunSummary(out_dir, n, summary["seconds_per_frame"], rmse, summary["peak_memory_mb"], mesh_path)
+    return RunSummary(out_dir, n, summary["seconds_per_frame"], rmse, summary["peak_memory_mb"], mesh_path,
+                      stopped_by)
+
+
+class StopRequest:
+    """While active (in the main thread), SIGINT and SIGTERM ask the run to stop cleanly instead of killing it;
+    a second signal stops it at once (KeyboardInterrupt)."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.requested: Optional[str] = None
+        self._previous: dict = {}
+
+    def __enter__(self) -> "StopRequest":
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {s: signal.signal(s, self._handle) for s in self.SIGNALS}
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = signal.Signals(signum).name
+        log.warning("%s: stopping; the trajectory so far and a checkpoint will be written (send it again to abort)",
+                    self.requested)
+
+    def __exit__(self, *exc) -> None:
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+
+
+def run_with_runtime(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label: str, frames: tuple,
+                     resume: Optional[Path], progress: bool, write_mesh: bool, workers: int,
+                     policy: str) -> RunSummary:
+    """`run_sequence` through a runtime: frames are submitted as fast as they load (offline policy) or at the data
+    set's frame rate (live policy), the progress bar follows the polled poses."""
+    from .runtime import make_runtime
+
+    if resume is not None:
+        raise ValueError("--resume continues a lock-step run only: use --workers 1 with --resume "
+                         "(or start a new run without --resume)")
+    rt = make_runtime(cfg, dataset.intrinsics, workers=workers, policy=policy)
+    bar = tqdm(total=len(dataset), desc="eslam", unit="frame", disable=not progress, dynamic_ncols=True)
+
+    def show(updates: list) -> None:
+        if updates:
+            bar.update(len(updates))
+            h = rt.health()
+            bar.set_postfix(frame=updates[-1].index, fps=f"{h.tracking_hz:.2f}", dropped=h.frames_dropped,
+                            loss=f"{updates[-1].tracking_loss:.4f}")
+
+    with StopRequest() as stop:
+        rt.start()
+        start = time.perf_counter()
+        try:
+            wall0 = data0 = None
+            for i in range(len(dataset)):
+                if stop.requested:
+                    break
+                frame = dataset[i]
+                if policy == "live":  # as a camera would deliver them
+                    if wall0 is None:
+                        wall0, data0 = time.monotonic(), frame.timestamp
+                    time.sleep(max(0.0, (frame.timestamp - data0) - (time.monotonic() - wall0)))
+                rt.submit(frame)
+                show(rt.poll())
+            while not stop.requested:  # let the workers finish here, where a signal can still stop them
+                h = rt.health()
+                if h.frames_tracked + h.frames_dropped >= h.frames_received and h.keyframe_queue_depth == 0:
+                    break
+                show(rt.poll())
+                time.sleep(0.05)
+            rt.close(drain=not stop.requested)
+            show(rt.poll())
+        except BaseException:
+            bar.close()
+            try:
+                rt.close(drain=False)
+            except Exception:  # noqa: BLE001 - the first error is the one to report
+                pass
+            raise
+        seconds = time.perf_counter() - start
+    bar.close()
+    slam = rt.snapshot()
+    health = rt.health()
+    figures = rt.worker_figures() if hasattr(rt, "worker_figures") else {}
+    peak = peak_memory_mb() + figures.get("tracker_peak_mb", 0.0) + figures.get("mapper_peak_mb", 0.0)
+    extra = {"runtime": {"workers": workers, "policy": policy, "stopped_by": stop.requested,
+                         "health": health.as_dict(), "workers_figures": figures,
+                         "peak_memory_note": "sum of the peaks of the parent and worker processes"}}
+    return write_outputs(cfg, slam, dataset, out_dir, data_label=data_label, frames=frames,
+                         n=health.frames_tracked, seconds=seconds, write_mesh=write_mesh and not stop.requested,
+                         peak_mb=peak, extra=extra, stopped_by=stop.requested)

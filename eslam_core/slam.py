@@ -21,7 +21,7 @@ from .field import SceneField
 from .frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
 from .keyframes import Keyframe, select_window
 from .mapping import Mapper
-from .tracking import constant_velocity, make_tracker
+from .tracking import constant_velocity, make_tracker, time_ratio
 
 log = logging.getLogger("eslam")
 
@@ -85,11 +85,13 @@ class SLAM:
             return self._first_frame(pf)
         n = len(self.records)
         prev2 = self.pose(n - 2) if n >= 2 and self.cfg.tracking.constant_velocity else None
-        init = torch.from_numpy(constant_velocity(prev2, self.pose(n - 1))).float()
-        usable = self._usable_pixels(pf, init, count=False)
+        ratio = time_ratio(self.records[n - 2].timestamp, self.records[n - 1].timestamp, pf.timestamp) if n >= 2 \
+            else 1.0
+        init = torch.from_numpy(constant_velocity(prev2, self.pose(n - 1), ratio)).float()
+        # The bound test uses the predicted pose: a few centimetres off at most, and it saves a second pass.
+        usable = self._usable_pixels(pf, init)
         result = self.tracker.track(self.field, pf, init, usable)
         pose = result.pose
-        usable = self._usable_pixels(pf, pose, count=True)
         is_keyframe = n % self.cfg.mapping.every == 0
         mapping_loss = float("nan")
         if is_keyframe:
@@ -120,7 +122,7 @@ class SLAM:
         self.field = SceneField(self.bound, self.cfg.model)
         log.info("map: %d parameters over bound %s", self.field.parameter_count(), np.round(self.bound, 3).tolist())
         pose = torch.from_numpy(pose0).float()
-        usable = self._usable_pixels(pf, pose, count=True)
+        usable = self._usable_pixels(pf, pose)
         self.keyframes.append(Keyframe.from_tensors(pf.index, pf.timestamp, pf.rgb, pf.depth, usable, pose))
         self._record(pf, 0, np.eye(4), 0.0)
         return pose0
@@ -134,21 +136,20 @@ class SLAM:
                  "if the camera will see beyond it", self.cfg.scene.bound_margin, np.round(bound, 2).tolist())
         return bound
 
-    def _usable_pixels(self, pf: PreparedFrame, pose: torch.Tensor, count: bool) -> torch.Tensor:
+    def _usable_pixels(self, pf: PreparedFrame, pose: torch.Tensor) -> torch.Tensor:
         """Pixels whose measured surface lies inside the bound; the others are left out and counted."""
         depth = pf.depth.reshape(-1)
         points = self.dirs_cam * depth[:, None] @ pose[:3, :3].T + pose[:3, 3]
         outside = torch.from_numpy(outside_mask(points.numpy(), self.bound)) & (depth > 0)
-        if count:
-            n_out, n_valid = int(outside.sum()), int((depth > 0).sum())
-            self.points_outside += n_out
-            self.points_seen += n_valid
-            frac = n_out / max(n_valid, 1)
-            if frac > 0.05 and frac > 2 * self._warned_outside:
-                self._warned_outside = frac
-                log.warning("frame %d: %.0f%% of its depth points lie outside the scene bound and are not mapped "
-                            "(%d so far); set scene.bound (or a larger scene.bound_margin) in the config",
-                            pf.index, 100 * frac, self.points_outside)
+        n_out, n_valid = int(outside.sum()), int((depth > 0).sum())
+        self.points_outside += n_out
+        self.points_seen += n_valid
+        frac = n_out / max(n_valid, 1)
+        if frac > 0.05 and frac > 2 * self._warned_outside:
+            self._warned_outside = frac
+            log.warning("frame %d: %.0f%% of its depth points lie outside the scene bound and are not mapped "
+                        "(%d so far); set scene.bound (or a larger scene.bound_margin) in the config",
+                        pf.index, 100 * frac, self.points_outside)
         return ~outside.reshape(pf.depth.shape)
 
     def _map_current(self) -> float:

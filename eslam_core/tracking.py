@@ -16,7 +16,7 @@ import torch
 from .config import Config
 from .field import SceneField
 from .frames import PreparedFrame, border_mask
-from .geometry import params_to_pose, pose_to_params, rays_to_world
+from .geometry import params_to_pose, pose_to_params, rays_to_world, scale_motion
 from .losses import eslam_losses
 from .rendering import render_rays
 
@@ -41,11 +41,23 @@ def frozen(module: torch.nn.Module):
             p.requires_grad_(flag)
 
 
-def constant_velocity(prev2: np.ndarray | None, prev: np.ndarray) -> np.ndarray:
-    """Predict the next pose by repeating the last relative motion."""
+def constant_velocity(prev2: np.ndarray | None, prev: np.ndarray, time_ratio: float = 1.0) -> np.ndarray:
+    """Predict the next pose by repeating the last relative motion, scaled by the ratio of the time gaps (frames
+    skipped by a live input make the gap to the next frame longer than the last one)."""
     if prev2 is None:
         return prev.copy()
-    return prev @ (np.linalg.inv(prev2) @ prev)
+    motion = np.linalg.inv(prev2) @ prev
+    if time_ratio != 1.0:
+        motion = scale_motion(motion, time_ratio)
+    return prev @ motion
+
+
+def time_ratio(t_prev2: float, t_prev: float, t_next: float, limit: float = 4.0) -> float:
+    """(t_next - t_prev) / (t_prev - t_prev2), 1 when the stamps say nothing useful, capped at `limit`."""
+    last = t_prev - t_prev2
+    if not last > 0 or not t_next > t_prev:
+        return 1.0
+    return float(min((t_next - t_prev) / last, limit))
 
 
 def outlier_mask(depth_error: torch.Tensor, factor: float) -> torch.Tensor:

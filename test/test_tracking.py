@@ -94,3 +94,18 @@ def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence):
     est = result.pose.double().numpy()
     assert np.linalg.norm(est[:3, 3] - gt[:3, 3]) < 0.01
     assert rotation_angle_deg(est[:3, :3].T @ gt[:3, :3]) < 0.5
+
+
+def test_constant_velocity_scales_with_the_time_gap():
+    from eslam_core.tracking import time_ratio
+
+    a, b = np.eye(4), np.eye(4)
+    b[:3, :3] = axis_angle([0, 1, 0], 1.0)
+    b[:3, 3] = [0.01, 0.0, 0.0]
+    ratio = time_ratio(0.0, 1 / 30, 4 / 30)  # two frames skipped after the last one
+    assert ratio == pytest.approx(3.0)
+    c = constant_velocity(a, b, ratio)
+    step = np.linalg.inv(b) @ c
+    assert np.allclose(step[:3, 3], [0.03, 0, 0], atol=1e-9)
+    assert rotation_angle_deg(step[:3, :3]) == pytest.approx(3.0)
+    assert time_ratio(0.0, 0.0, 1.0) == 1.0 and time_ratio(0.0, 1.0, 100.0) == 4.0

@@ -1,0 +1,216 @@
+"""The runtime API: how a caller (the offline runner, the ROS node) drives SLAM without waiting for it.
+
+A runtime takes frames (`submit`), hands back poses as they are tracked (`poll`), and can at any time give the
+trajectory, a checkpoint or a mesh of the map so far. Two implementations share this API:
+
+- `InProcessRuntime` (workers=1): the lock-step `SLAM` on a background thread of the caller's process.
+- `MultiProcessRuntime` (workers=2): a tracking process and a mapping process working at the same time.
+
+Input policies decide what happens when frames arrive faster than they can be tracked:
+
+- "offline": every frame is processed, in order; `submit` blocks while the input buffer is full.
+- "live": `submit` never blocks; a full buffer loses its oldest pending frame, and the tracker always takes the
+  newest pending frame, skipping the older ones. Every frame lost either way is counted in `Health.frames_dropped`.
+"""
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Optional, Protocol, runtime_checkable
+
+import numpy as np
+
+from ..camera import Frame, Intrinsics
+from ..config import Config
+from ..slam import FrameRecord
+
+POLICIES = ("offline", "live")
+WORKER_CHOICES = (1, 2)
+
+
+class RuntimeSetupError(ValueError):
+    """The runtime was asked for something it cannot do (unknown policy, bad worker count, wrong frame size)."""
+
+
+class RuntimeCrashed(RuntimeError):
+    """A worker died. `worker` names it, `traceback` is its traceback (or how it died), `summary` one line."""
+
+    def __init__(self, worker: str, summary: str, traceback: str = ""):
+        self.worker = worker
+        self.summary = summary
+        self.traceback = traceback
+        super().__init__(f"{summary}\n{traceback}".rstrip())
+
+
+@dataclass
+class PoseUpdate:
+    index: int
+    timestamp: float
+    pose: np.ndarray  # 4x4 camera-to-world, as tracked (later keyframe refinements show in `trajectory()`)
+    tracking_loss: float
+    keyframe: bool
+    latency_s: float  # frame arrival (submit) -> pose available
+
+
+@dataclass
+class Health:
+    frames_received: int
+    frames_tracked: int
+    frames_dropped: int
+    keyframes: int
+    tracking_hz: float  # tracked frames per second over the last few seconds
+    mapping_hz: float  # mapping steps per second over the last few seconds
+    input_queue_depth: int  # frames submitted and not yet taken by the tracker
+    keyframe_queue_depth: int  # keyframes handed to the mapper and not yet mapped
+    map_version: int  # increases whenever the tracker can see a newer map
+    latency_ms_last: float
+    latency_ms_mean: float  # over the last LATENCY_WINDOW poses
+    # The cost of keeping tracker and mapper consistent (multi-process only; 0 otherwise), mean per call.
+    map_publish_ms: float = 0.0
+    map_read_ms: float = 0.0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@runtime_checkable
+class SLAMRuntime(Protocol):
+    def start(self) -> None: ...
+
+    def submit(self, frame: Frame) -> None: ...
+
+    def poll(self) -> list[PoseUpdate]: ...
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def health(self) -> Health: ...
+
+    def save_checkpoint(self, path) -> Path: ...
+
+    def save_mesh(self, path, resolution: float | None = None) -> Path: ...
+
+    def save_trajectory(self, path) -> Path: ...
+
+    def reset(self) -> None: ...
+
+    def close(self, timeout: float | None = None) -> None: ...
+
+    def __enter__(self) -> "SLAMRuntime": ...
+
+    def __exit__(self, *exc) -> None: ...
+
+
+def check_policy(policy: str) -> str:
+    if policy not in POLICIES:
+        raise RuntimeSetupError(f"unknown input policy {policy!r}: choose one of {', '.join(POLICIES)} "
+                                f"(offline = every frame in order, live = skip to the newest frame when behind)")
+    return policy
+
+
+def check_frame(frame: Frame, intrinsics: Intrinsics) -> None:
+    """Refuse a frame at `submit`, in the caller's thread, rather than failing later inside a worker."""
+    want = (intrinsics.height, intrinsics.width)
+    if frame.rgb.shape[:2] != want or frame.depth.shape != want or frame.rgb.ndim != 3:
+        raise RuntimeSetupError(
+            f"frame {frame.index}: rgb {frame.rgb.shape} / depth {frame.depth.shape} do not match the camera "
+            f"{intrinsics.width}x{intrinsics.height} the runtime was made for; give make_runtime the intrinsics of "
+            f"these images (or fix the camera section of the config)")
+
+
+# ------------------------------------------------------------------------------------------------- health figures
+
+RATE_WINDOW_S = 10.0
+LATENCY_WINDOW = 100
+
+
+class RateMeter:
+    """Events per second over the last `window_s` seconds."""
+
+    def __init__(self, window_s: float = RATE_WINDOW_S):
+        self.window_s = window_s
+        self.times: deque = deque()
+
+    def tick(self, t: float) -> None:
+        self.times.append(t)
+
+    def rate(self, now: Optional[float] = None) -> float:
+        """Intervals between the recent events over the time since the oldest of them: the event rate while events
+        come, decaying towards 0 when they stop."""
+        now = time.monotonic() if now is None else now
+        while self.times and self.times[0] < now - self.window_s:
+            self.times.popleft()
+        if len(self.times) < 2:
+            return 0.0
+        return (len(self.times) - 1) / max(now - self.times[0], 1e-6)
+
+
+class LatencyMeter:
+    def __init__(self, window: int = LATENCY_WINDOW):
+        self.recent: deque = deque(maxlen=window)
+
+    def add(self, seconds: float) -> None:
+        self.recent.append(seconds)
+
+    @property
+    def last_ms(self) -> float:
+        return 1000.0 * self.recent[-1] if self.recent else 0.0
+
+    @property
+    def mean_ms(self) -> float:
+        return 1000.0 * float(np.mean(self.recent)) if self.recent else 0.0
+
+
+class TrajectoryMirror:
+    """A copy of the trajectory that the caller can read at any time without waiting for the SLAM step in progress:
+    each frame relative to its keyframe (as `SLAM` stores it), keyframe poses updated as mapping refines them
+    (a refinement may arrive before the keyframe's own record)."""
+
+    def __init__(self):
+        self.records: list[FrameRecord] = []
+        self.keyframe_poses: dict[int, np.ndarray] = {}
+        self.keyframes = 0
+
+    def add(self, record: FrameRecord, pose: np.ndarray, keyframe: bool) -> None:
+        if keyframe:
+            self.keyframe_poses.setdefault(record.reference, np.asarray(pose, dtype=np.float64))
+            self.keyframes = max(self.keyframes, record.reference + 1)
+        self.records.append(record)
+
+    def refine(self, poses: dict) -> None:
+        for i, pose in poses.items():
+            self.keyframe_poses[i] = np.asarray(pose, dtype=np.float64)
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        if not self.records:
+            return np.zeros(0), np.zeros((0, 4, 4))
+        poses = [self.keyframe_poses[r.reference] @ r.relative for r in self.records]
+        return np.array([r.timestamp for r in self.records]), np.stack(poses)
+
+
+# ---------------------------------------------------------------------------------------------------------- factory
+
+def make_runtime(cfg: Config, intrinsics: Intrinsics, workers: int = 2, policy: str = "offline", *,
+                 threads: Optional[int] = None, **options) -> SLAMRuntime:
+    """A runtime for frames of `intrinsics` (the camera as the frames arrive, before `camera.image_scale`).
+
+    workers=1: lock-step SLAM on a background thread; workers=2: tracking and mapping processes. `threads`: torch
+    threads per worker (default: `run.threads` from the config, or the machine's cores split between the workers).
+    `options` tune the implementation: `capacity` (input buffer, both), and for workers=2 `publish_every`,
+    `lend_threads`, `keyframe_backlog` (see MultiProcessRuntime). Call `start()` (or use it as a context manager)
+    before submitting frames.
+    """
+    check_policy(policy)
+    if workers == 1:
+        from .inprocess import InProcessRuntime as Runtime
+    elif workers == 2:
+        from .multiprocess import MultiProcessRuntime as Runtime
+    else:
+        raise RuntimeSetupError(f"workers must be one of {WORKER_CHOICES} (1 = lock-step in this process, 2 = a "
+                                f"tracking and a mapping process), got {workers!r}")
+    try:
+        return Runtime(cfg, intrinsics, policy=policy, threads=threads, **options)
+    except TypeError as e:
+        raise RuntimeSetupError(f"make_runtime(workers={workers}): {e}; the options are the keyword arguments of "
+                                f"{Runtime.__name__}") from None

@@ -1,0 +1,260 @@
+"""The single-process runtime: the lock-step `SLAM` on a background thread, behind the runtime API.
+
+Frames wait in a bounded queue (offline: `submit` blocks while it is full; live: the oldest pending frame makes
+room, and the SLAM thread always takes the newest frame, skipping the others). The SLAM thread tracks each frame
+and, every `mapping.every` frames, maps, exactly as `eslam run --workers 1` does. A copy of the trajectory is kept
+up to date after every step, so `trajectory()` never waits for the step in progress; checkpoints and meshes are
+made from a copy of the SLAM state taken between two steps.
+
+"Stop now" (`close(drain=False)`, `reset()`) interrupts the step in progress at its next optimiser iteration,
+through a torch optimiser hook that only acts on the SLAM thread, so that a long warm-up does not hold up a
+shutdown. torch's thread count is process-wide: `threads` (or `run.threads`) sets it for the whole process.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import traceback
+from collections import deque
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+from torch.optim.optimizer import register_optimizer_step_post_hook
+
+from ..camera import Frame, Intrinsics
+from ..config import Config
+from ..evaluation.trajectory import Trajectory, write_tum
+from ..export import map_mesh, save_checkpoint
+from ..mesh import save_ply
+from ..slam import SLAM
+from .api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, TrajectoryMirror, \
+    check_frame, check_policy
+
+log = logging.getLogger("eslam")
+
+DEFAULT_CAPACITY = 8
+
+
+class _StepInterrupted(Exception):
+    """Raised inside an optimiser step of the SLAM thread when the caller asked to stop now or to reset."""
+
+
+class InProcessRuntime:
+    def __init__(self, cfg: Config, intrinsics: Intrinsics, policy: str = "offline", threads: Optional[int] = None,
+                 capacity: int = DEFAULT_CAPACITY):
+        self.cfg = cfg
+        self.intrinsics = intrinsics
+        self.policy = check_policy(policy)
+        self.threads = threads or cfg.run.threads or None
+        if capacity < 1:
+            raise RuntimeSetupError(f"the input buffer needs at least one slot, got capacity={capacity}")
+        self.capacity = capacity
+        self._cond = threading.Condition()  # guards the input queue, the flags below and the counts
+        self._inputs: deque = deque()
+        self._closing = self._stop_now = False
+        self._slam_lock = threading.Lock()  # held for a whole step: the SLAM object is consistent between steps
+        self._lock = threading.Lock()  # guards what the caller reads: mirror, updates, meters
+        self._started = self._closed = False
+        self._crash: Optional[RuntimeCrashed] = None
+        self._thread: Optional[threading.Thread] = None
+        self._hook = None
+        self._epoch = 0
+        self._step_epoch = 0  # the epoch of the step in progress
+        self._counts = dict(received=0, tracked=0, dropped=0, mapping_steps=0)  # since start (over resets)
+        self._new_map()
+
+    def _new_map(self) -> None:
+        self.slam = SLAM(self.cfg, self.intrinsics)
+        self._mirror = TrajectoryMirror()
+        self._updates: list[PoseUpdate] = []
+        self._tracking_rate, self._mapping_rate, self._latency = RateMeter(), RateMeter(), LatencyMeter()
+
+    # ------------------------------------------------------------------------------------------------ the API
+    def start(self) -> None:
+        if self._started:
+            raise RuntimeSetupError("the runtime is already started (start() is called once; use reset() to begin "
+                                    "a new map)")
+        self._started = True
+        if self.threads:
+            torch.set_num_threads(self.threads)
+        self._hook = register_optimizer_step_post_hook(self._after_iteration)
+        self._thread = threading.Thread(target=self._run, name="eslam-slam", daemon=True)
+        self._thread.start()
+
+    def _check_running(self) -> None:
+        if not self._started:
+            raise RuntimeSetupError("the runtime is not started: call start() first (or use it in a `with` block)")
+        if self._closed:
+            raise RuntimeSetupError("the runtime is closed: make a new one with make_runtime()")
+        if self._crash is not None:
+            raise self._crash
+
+    def submit(self, frame: Frame) -> None:
+        self._check_running()
+        check_frame(frame, self.intrinsics)
+        item = (frame, time.monotonic(), self._epoch)
+        with self._cond:
+            self._counts["received"] += 1
+            while len(self._inputs) >= self.capacity:
+                if self.policy == "live":
+                    self._inputs.popleft()
+                    self._counts["dropped"] += 1
+                    break
+                self._cond.wait(0.1)
+                if self._crash is not None:
+                    raise self._crash
+                if self._stop_now:  # close(drain=False) from another thread: nobody will take it
+                    self._counts["dropped"] += 1
+                    return
+            self._inputs.append(item)
+            self._cond.notify_all()
+
+    def poll(self) -> list[PoseUpdate]:
+        if self._crash is not None and not self._closed:
+            raise self._crash
+        with self._lock:
+            out, self._updates = self._updates, []
+        return out
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._closed:
+            return self.slam.timestamps(), self.slam.poses()
+        with self._lock:
+            return self._mirror.trajectory()
+
+    def health(self) -> Health:
+        with self._cond:
+            pending, c = len(self._inputs), dict(self._counts)
+        with self._lock:
+            return Health(c["received"], c["tracked"], c["dropped"], self._mirror.keyframes, self._tracking_rate.rate(),
+                          self._mapping_rate.rate(), pending, 0, c["mapping_steps"], self._latency.last_ms,
+                          self._latency.mean_ms)
+
+    def snapshot(self) -> SLAM:
+        """A copy of the SLAM state between two steps (after close(), the final state itself)."""
+        if self._closed or not self._started:
+            return self.slam
+        with self._slam_lock:
+            # Tensors are shared with the live state, which replaces (never modifies) them; the field is copied.
+            return SLAM.from_state_dict(self.slam.state_dict())
+
+    def save_checkpoint(self, path) -> Path:
+        return save_checkpoint(self.snapshot(), Path(path))
+
+    def save_mesh(self, path, resolution: float | None = None) -> Path:
+        return save_ply(map_mesh(self.snapshot(), resolution or self.cfg.mesh.resolution), Path(path))
+
+    def save_trajectory(self, path) -> Path:
+        timestamps, poses = self.trajectory()
+        return write_tum(Path(path), Trajectory(timestamps, poses))
+
+    def reset(self) -> None:
+        self._check_running()
+        with self._cond:
+            self._counts["dropped"] += len(self._inputs)
+            self._inputs.clear()
+            self._epoch += 1  # also interrupts the step in progress
+        with self._slam_lock, self._lock:
+            self._new_map()
+
+    def close(self, timeout: float | None = None, drain: Optional[bool] = None) -> None:
+        """Finish (offline: every submitted frame; `drain=False`: stop now), stop the thread. Idempotent.
+        `timeout`: seconds to wait for the work before stopping now anyway. Raises RuntimeCrashed if SLAM failed."""
+        if self._closed:
+            return
+        self._closed = True
+        if not self._started:
+            return
+        drain = self.policy == "offline" if drain is None else drain
+        with self._cond:
+            self._closing = True
+            if not drain:
+                self._stop_now_locked()
+            self._cond.notify_all()
+        self._thread.join(timeout if drain else None)
+        if self._thread.is_alive():
+            log.warning("runtime: the work did not finish within %.0f s; stopping now", timeout)
+            with self._cond:
+                self._stop_now_locked()
+                self._cond.notify_all()
+            self._thread.join()
+        self._hook.remove()
+        if self._crash is not None:
+            raise self._crash
+
+    def _stop_now_locked(self) -> None:
+        self._stop_now = True
+        self._counts["dropped"] += len(self._inputs)
+        self._inputs.clear()
+
+    def __enter__(self) -> "InProcessRuntime":
+        if not self._started:
+            self.start()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        try:
+            self.close(drain=None if exc_type is None else False)
+        except RuntimeCrashed:
+            if exc_type is None:
+                raise
+
+    # ------------------------------------------------------------------------------------------ the SLAM thread
+    def _next(self):
+        with self._cond:
+            while not self._inputs and not self._closing:
+                self._cond.wait()
+            if self._stop_now or not self._inputs:
+                return None
+            if self.policy == "live" and len(self._inputs) > 1:  # behind: skip to the newest frame
+                self._counts["dropped"] += len(self._inputs) - 1
+                while len(self._inputs) > 1:
+                    self._inputs.popleft()
+            item = self._inputs.popleft()
+            self._cond.notify_all()
+            return item
+
+    def _run(self) -> None:
+        try:
+            while (item := self._next()) is not None:
+                frame, arrival, epoch = item
+                try:
+                    with self._slam_lock:
+                        if epoch != self._epoch:
+                            raise _StepInterrupted  # submitted before a reset
+                        self._step_epoch = epoch
+                        res = self.slam.step(frame)
+                        record = self.slam.records[-1]
+                        refined = {i: kf.pose.double().numpy() for i, kf in enumerate(self.slam.keyframes)} \
+                            if res.keyframe else {}
+                except _StepInterrupted:
+                    with self._cond:
+                        self._counts["dropped"] += 1  # taken, never tracked
+                    continue
+                done = time.monotonic()
+                with self._lock:
+                    if epoch == self._epoch:  # else a reset came in after the step: it belongs to the old map
+                        self._mirror.add(record, res.pose, res.keyframe)
+                        self._mirror.refine(refined)
+                        self._updates.append(PoseUpdate(res.index, frame.timestamp, res.pose, res.tracking_loss,
+                                                        res.keyframe, done - arrival))
+                        self._tracking_rate.tick(done)
+                        self._latency.add(done - arrival)
+                        if res.keyframe:
+                            self._mapping_rate.tick(done)
+                with self._cond:
+                    self._counts["tracked"] += 1
+                    self._counts["mapping_steps"] += int(res.keyframe)
+        except BaseException as e:  # noqa: BLE001 - reported to the caller as a crash
+            self._crash = RuntimeCrashed("slam", f"the SLAM thread failed: {type(e).__name__}: {e}",
+                                         traceback.format_exc())
+            log.error("%s\n%s", self._crash.summary, self._crash.traceback)
+            with self._cond:
+                self._cond.notify_all()
+
+    def _after_iteration(self, optimizer, args, kwargs) -> None:
+        if threading.current_thread() is self._thread and (self._stop_now or self._step_epoch != self._epoch):
+            raise _StepInterrupted

@@ -1,0 +1,659 @@
+"""The two worker processes of the pipelined runtime: the tracker and the mapper, and what they say to each other.
+
+Tracker: takes frames from the shared frame ring and runs the lock-step schedule of `SLAM` minus mapping
+(`PipelinedTracking`): every frame is tracked against the newest map version it can see, stored relative to its
+keyframe, and every `mapping.every`-th frame becomes a keyframe that is handed to the mapper (uint8 colour and
+16-bit depth, as `Keyframe` stores them) instead of being mapped. It never waits for the mapper, except once:
+frame 1 needs the map of frame 0 (the warm-up), as in the lock-step schedule. Refined keyframe poses come back
+from the mapper and move the frames tracked after those keyframes, as in `SLAM`.
+
+Mapper: owns the `SceneField`. It starts the map from keyframe 0 (bound chosen by the tracker from that frame),
+runs the warm-up, then one mapping step per keyframe (offline policy). When keyframes queue up beyond
+`keyframe_backlog` (0 under the live policy; unlimited by default offline), the older waiting ones join the window
+of the newest as its "previous keyframes" instead of getting a step of their own, so the map keeps up with the camera.
+After each step, and
+every `publish_every` optimiser iterations during a step, it publishes the parameters into the shared map. The
+publishing and the checks for stop / reset / snapshot requests happen in an optimiser post-step hook, so that
+`Mapper.map` needs no changes and a long step (the warm-up) still reacts within one iteration.
+
+Cores: each worker owns `threads` torch threads (the machine's cores split between the two). While one worker is
+idle (the tracker during the warm-up or without frames, the mapper without keyframes), its threads are lent to the
+other (`CoreShare`, checked before every frame or step and after every optimiser iteration), so that the warm-up and
+the end of a run are not slower than in the lock-step schedule, which uses every core for whatever it does.
+
+Both workers: ignore SIGINT and SIGTERM (Ctrl-C reaches the whole process group, and service managers send SIGTERM
+to every process of a service: stopping is the parent's decision, which asks them, or SIGKILLs them), die with their
+parent (Linux
+PR_SET_PDEATHSIG plus a thread watching the parent pid), set their own torch thread count, and on any exception
+send their traceback to the parent through a pipe and exit with code 1.
+
+Fault injection (a testing aid): ESLAM_FAULT="tracker:5" makes the tracker fail when it is about to track its
+frame number 5 (counting from 0), "mapper:3" makes the mapper fail at the start of its mapping step number 3 (the
+warm-up is step 0). Append ":kill" to die by SIGKILL instead of raising, ":oom" to raise MemoryError. Several
+faults are separated by commas.
+"""
+from __future__ import annotations
+
+import ctypes
+import dataclasses
+import logging
+import os
+import queue
+import resource
+import signal
+import sys
+import threading
+import time
+import traceback
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import numpy as np
+import torch
+from torch.optim.optimizer import register_optimizer_step_post_hook
+
+from ..camera import Frame, Intrinsics
+from ..config import Config
+from ..field import SceneField
+from ..frames import PreparedFrame, working_intrinsics
+from ..keyframes import Keyframe
+from ..native import load_kernel
+from ..slam import SLAM, StepResult
+from .shared import Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap
+
+log = logging.getLogger("eslam")
+
+EXIT_CRASHED = 1
+EXIT_ORPHANED = 3  # the parent disappeared
+POLL_S = 0.05  # how often idle workers look at their flags and queues
+PARENT_WATCH_S = 0.25
+STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}  # ignored by workers: the parent stops them
+
+
+# ------------------------------------------------------------------------------------------------------ messages
+
+@dataclass
+class WorkerReady:
+    worker: str
+    pid: int
+
+
+@dataclass
+class KeyframeMessage:  # tracker -> mapper
+    epoch: int
+    position: int  # in the keyframe list
+    frame_index: int
+    timestamp: float
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) int16 (uint16 bits, see keyframes.DEPTH_STEP)
+    usable: np.ndarray  # (H, W) bool
+    pose: np.ndarray  # (4, 4) float32
+    bound: Optional[np.ndarray]  # with keyframe 0: the scene bound the map is built over
+
+    def keyframe(self) -> Keyframe:
+        return Keyframe(self.frame_index, self.timestamp, torch.from_numpy(self.rgb), torch.from_numpy(self.depth),
+                        torch.from_numpy(self.usable), torch.from_numpy(self.pose))
+
+
+@dataclass
+class TrackedFrame:  # tracker -> parent
+    epoch: int
+    index: int
+    timestamp: float
+    pose: np.ndarray  # (4, 4) camera-to-world when tracked
+    tracking_loss: float
+    keyframe: bool
+    latency_s: float
+    done: float  # time.monotonic() when the pose was available
+    reference: int  # keyframe position the pose is stored relative to
+    relative: np.ndarray
+    gt_pose: Optional[np.ndarray]
+
+
+@dataclass
+class TrackerFinished:  # tracker -> mapper and parent: no more frames (input drained, or told to stop)
+    epoch: int
+    frames: int
+    keyframes: int
+
+
+@dataclass
+class MapAttach:  # mapper -> tracker, after the warm-up: where the map is
+    epoch: int
+    buffers: torch.Tensor
+
+
+@dataclass
+class RefinedPoses:  # mapper -> tracker
+    epoch: int
+    poses: dict  # keyframe position -> (4, 4) float32
+
+
+@dataclass
+class MappingReport:  # mapper -> parent, after every mapping step
+    epoch: int
+    step: int
+    version: int
+    loss: float
+    seconds: float
+    done: float
+    refined: dict
+
+
+@dataclass
+class MapperFinished:  # mapper -> parent: every keyframe the tracker made is mapped (or stop was asked)
+    epoch: int
+
+
+@dataclass
+class SnapshotRequest:  # parent -> mapper
+    request_id: int
+    epoch: int
+    min_keyframes: int
+
+
+@dataclass
+class MapperSnapshot:  # mapper -> parent
+    request_id: int
+    epoch: int
+    state: dict  # bound, field, keyframes (stacked tensors), rng; None values before the first keyframe
+
+
+# ------------------------------------------------------------------------------------------------- set-up, faults
+
+@dataclass
+class WorkerSetup:
+    cfg: Config
+    intrinsics: Intrinsics  # of the frames as submitted
+    policy: str
+    threads: int
+    parent_pid: int
+    log_level: int
+    publish_every: int = 5  # optimiser iterations between mid-step map publications
+    faults: str = ""
+    lend_threads: bool = True  # an idle worker's threads go to the busy one (see CoreShare)
+    # Keyframes allowed to wait while the mapper maps one; beyond that the older ones join the window of the newest
+    # without a step of their own. None: every keyframe gets its step (offline); the live policy uses 0.
+    keyframe_backlog: Optional[int] = None
+
+
+@dataclass
+class Channels:
+    ring: FrameRing
+    to_mapper: Any  # queue: KeyframeMessage, TrackerFinished
+    to_tracker: Any  # queue: MapAttach, RefinedPoses
+    to_parent: Any  # queue: WorkerReady, TrackedFrame, MappingReport, ..., MapperSnapshot
+    commands: Any  # queue, parent -> mapper: SnapshotRequest
+    board: HealthBoard
+    control: Control
+    map_meta: MapMeta
+
+
+class InjectedFault(RuntimeError):
+    """Raised on purpose by ESLAM_FAULT (testing aid)."""
+
+
+@dataclass(frozen=True)
+class FaultPlan:
+    steps: dict = field(default_factory=dict)  # worker -> (step, mode)
+
+    @staticmethod
+    def parse(text: str) -> "FaultPlan":
+        steps = {}
+        for item in filter(None, (s.strip() for s in text.split(","))):
+            parts = item.split(":")
+            if len(parts) not in (2, 3) or parts[0] not in ("tracker", "mapper") or not parts[1].isdigit() or \
+                    (len(parts) == 3 and parts[2] not in ("raise", "kill", "oom")):
+                raise ValueError(f"ESLAM_FAULT={text!r}: each fault is worker:step[:mode] with worker tracker or "
+                                 f"mapper and mode raise, kill or oom (e.g. mapper:3 or tracker:5:kill)")
+            steps[parts[0]] = (int(parts[1]), parts[2] if len(parts) == 3 else "raise")
+        return FaultPlan(steps)
+
+    def check(self, worker: str, step: int) -> None:
+        if worker not in self.steps or self.steps[worker][0] != step:
+            return
+        mode = self.steps[worker][1]
+        if mode == "kill":
+            os.kill(os.getpid(), signal.SIGKILL)
+        if mode == "oom":
+            raise MemoryError(f"injected out-of-memory in the {worker} at step {step} (ESLAM_FAULT)")
+        raise InjectedFault(f"injected fault in the {worker} at step {step} (ESLAM_FAULT)")
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """Exit when the parent does, even if it is SIGKILLed: the kernel's parent-death signal where there is one
+    (Linux), and in any case a thread that watches the parent pid."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        PR_SET_PDEATHSIG = 1
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent_pid:  # the parent died before the signal was armed
+        os._exit(EXIT_ORPHANED)
+
+    def watch() -> None:
+        while True:
+            time.sleep(PARENT_WATCH_S)
+            if os.getppid() != parent_pid:
+                os._exit(EXIT_ORPHANED)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def become_worker(name: str, setup: WorkerSetup) -> None:
+    # Ctrl-C goes to the whole process group, SIGTERM often to every process of a service; the parent decides how
+    # its workers stop. (The parent spawns us with both blocked, so that they cannot hit us before these lines.)
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+    die_with_parent(setup.parent_pid)
+    logging.basicConfig(level=setup.log_level, format=f"%(levelname)s eslam.{name}: %(message)s")
+    torch.set_num_threads(setup.threads)
+    torch.manual_seed(setup.cfg.run.seed)
+    load_kernel("plane_lookup")  # build / load the C kernel now rather than inside the first frame's timing
+
+
+def run_worker(name: str, body, setup: WorkerSetup, errors) -> None:
+    """Run a worker's main loop; on any failure send the traceback to the parent and exit non-zero."""
+    code = 0
+    try:
+        become_worker(name, setup)
+        body()
+    except BaseException:  # noqa: BLE001 - whatever it was, the parent must hear about it
+        code = EXIT_CRASHED
+        try:
+            errors.send(traceback.format_exc())
+        except OSError:
+            pass
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        # Skip interpreter teardown: queue feeder threads would wait for a parent that may no longer read.
+        os._exit(code)
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def working_setup(cfg: Config, intrinsics: Intrinsics) -> tuple[Config, Intrinsics]:
+    """The config and camera of frames that are already at the working resolution (as in the frame ring)."""
+    return dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, image_scale=1.0)), \
+        working_intrinsics(intrinsics, cfg.camera)
+
+
+def _get(q, timeout: float):
+    try:
+        return q.get(timeout=timeout) if timeout > 0 else q.get_nowait()
+    except queue.Empty:
+        return None
+
+
+class CoreShare:
+    """A worker's torch threads: its own share, plus the other worker's while that one is idle."""
+
+    def __init__(self, board: HealthBoard, mine: Counter, other: Counter, beat: Counter, threads: int, lend: bool):
+        self.board, self.mine, self.other, self.beat = board, mine, other, beat
+        self.threads, self.lend = threads, lend
+
+    def busy(self, flag: bool) -> None:
+        self.board.set(self.mine, float(flag))
+        self.update()
+
+    def update(self) -> None:
+        """Also the worker's heartbeat: called at least once per loop pass and optimiser iteration."""
+        self.board.set(self.beat, time.monotonic())
+        lent = self.threads if self.lend and self.board.get(self.other) == 0 else 0
+        if torch.get_num_threads() != self.threads + lent:
+            torch.set_num_threads(self.threads + lent)
+
+
+class Interrupted(Exception):
+    """The parent asked to stop, exit or reset while a worker was waiting or in the middle of a step."""
+
+
+# ------------------------------------------------------------------------------------------------------- tracker
+
+class PipelinedTracking(SLAM):
+    """The lock-step schedule of `SLAM` without mapping: new keyframes are listed in `handed_over` for the
+    mapper process. Its `field` is the tracker's own copy of the map, refreshed from shared memory."""
+
+    def __init__(self, cfg: Config, intrinsics: Intrinsics):
+        super().__init__(cfg, intrinsics)
+        self.handed_over: list[int] = []
+
+    def _first_frame(self, pf: PreparedFrame) -> StepResult:
+        pose0 = self._start_map(pf)
+        self.handed_over.append(0)
+        return StepResult(pf.index, pose0, 0.0, True, float("nan"))
+
+    def _map_current(self) -> float:
+        self.handed_over.append(len(self.keyframes) - 1)
+        return float("nan")
+
+
+EMPTY_IMAGE = torch.zeros(0, 0, dtype=torch.uint8)
+
+
+class TrackerWorker:
+    def __init__(self, setup: WorkerSetup, ch: Channels):
+        self.setup = setup
+        self.ch = ch
+        self.live = setup.policy == "live"
+        self.faults = FaultPlan.parse(setup.faults)
+        self.cfg, self.intr = working_setup(setup.cfg, setup.intrinsics)
+        self.epoch = ch.control.epoch
+        self._new_state()
+        self.tracked = 0
+        self.finished = False
+        self.cores = CoreShare(ch.board, Counter.TRACKER_BUSY, Counter.MAPPER_BUSY, Counter.TRACKER_BEAT,
+                               setup.threads, setup.lend_threads)
+        register_optimizer_step_post_hook(lambda *args: self.cores.update())  # the rendering tracker's iterations
+
+    def _new_state(self) -> None:
+        self.state = PipelinedTracking(self.cfg, self.intr)
+        self.map: Optional[SharedMap] = None
+        self.map_version = -1
+        self.counted_outside = (0, 0)
+
+    def run(self) -> None:
+        self.ch.to_parent.put(WorkerReady("tracker", os.getpid()))
+        while not self.ch.control.exiting:
+            self.cores.update()
+            self._sync_epoch()
+            self._receive(0.0)
+            if self.finished:
+                time.sleep(POLL_S)
+                continue
+            if self.ch.control.stopping or self.ch.ring.drained():
+                self._finish()
+                continue
+            frame, skipped = self.ch.ring.take(self.live, POLL_S)
+            if skipped:
+                self.ch.board.add(Counter.DROPPED_BY_TRACKER, skipped)
+            if frame is None:
+                self.cores.busy(False)
+                continue
+            self._sync_epoch()  # a reset between the last check and this frame: track it in the new epoch
+            try:
+                self._track(frame)
+            except Interrupted:
+                self.ch.board.add(Counter.DROPPED_BY_TRACKER)  # taken, never tracked
+
+    def _sync_epoch(self) -> None:
+        epoch = self.ch.control.epoch
+        if epoch != self.epoch:
+            self.epoch = epoch
+            self._new_state()
+
+    def _receive(self, timeout: float) -> None:
+        msg = _get(self.ch.to_tracker, timeout)
+        while msg is not None:
+            if msg.epoch == self.epoch:
+                if isinstance(msg, MapAttach):
+                    self.map = SharedMap(self.ch.map_meta, msg.buffers)
+                    self.map_version = -1
+                elif isinstance(msg, RefinedPoses):
+                    for i, pose in msg.poses.items():
+                        self.state.keyframes[i].pose = torch.from_numpy(pose)
+            msg = _get(self.ch.to_tracker, 0.0)
+
+    def _wait_for_map(self) -> None:
+        """Frame 1 onwards need the warmed-up map of frame 0."""
+        if self.map is None:
+            self.cores.busy(False)  # the mapper has the machine for the warm-up
+        while self.map is None:
+            if self.ch.control.stopping or self.ch.control.exiting or self.ch.control.epoch != self.epoch:
+                raise Interrupted
+            self._receive(POLL_S)
+            self.cores.update()
+
+    def _refresh_map(self) -> None:
+        version = self.map.read_into(self.state.field, self.map_version)
+        if version is not None:
+            log.debug("tracker: map version %d (%.1f ms to copy in)", version, 1000 * self.map.read_seconds)
+            self.map_version = version
+            self.ch.board.add(Counter.READ_SECONDS, self.map.read_seconds)
+            self.ch.board.add(Counter.READS)
+
+    def _track(self, item) -> None:
+        self.faults.check("tracker", self.tracked)
+        if self.state.field is not None:
+            self._wait_for_map()
+            self._refresh_map()
+        self.cores.busy(True)
+        frame = Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose)
+        start = time.monotonic()
+        res = self.state.step(frame)
+        done = time.monotonic()
+        log.debug("tracker: frame %d tracked in %.2f s", item.index, done - start)
+        for position in self.state.handed_over:
+            self._hand_over(position)
+        self.state.handed_over.clear()
+        rec = self.state.records[-1]
+        self.ch.to_parent.put(TrackedFrame(self.epoch, res.index, item.timestamp, res.pose, res.tracking_loss,
+                                           res.keyframe, done - item.arrival, done, rec.reference, rec.relative,
+                                           rec.gt_pose))
+        self.tracked += 1
+        board = self.ch.board
+        board.add(Counter.TRACKED)
+        board.add(Counter.POINTS_OUTSIDE, self.state.points_outside - self.counted_outside[0])
+        board.add(Counter.POINTS_SEEN, self.state.points_seen - self.counted_outside[1])
+        self.counted_outside = (self.state.points_outside, self.state.points_seen)
+        board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
+
+    def _hand_over(self, position: int) -> None:
+        """Send a new keyframe to the mapper and keep only its pose here (the images live in the mapper)."""
+        kf = self.state.keyframes[position]
+        bound = self.state.bound.copy() if position == 0 else None
+        self.ch.to_mapper.put(KeyframeMessage(self.epoch, position, kf.frame_index, kf.timestamp, kf.rgb.numpy(),
+                                              kf.depth.numpy(), kf.usable.numpy(), kf.pose.numpy(), bound))
+        self.state.keyframes[position] = dataclasses.replace(kf, rgb=EMPTY_IMAGE, depth=EMPTY_IMAGE,
+                                                             usable=EMPTY_IMAGE)
+        self.ch.board.add(Counter.KEYFRAMES)
+
+    def _finish(self) -> None:
+        done = TrackerFinished(self.epoch, len(self.state.records), len(self.state.keyframes))
+        self.ch.to_mapper.put(done)
+        self.ch.to_parent.put(done)
+        self.finished = True
+        self.cores.busy(False)
+
+
+def tracker_main(setup: WorkerSetup, channels: Channels, errors) -> None:
+    run_worker("tracker", lambda: TrackerWorker(setup, channels).run(), setup, errors)
+
+
+# -------------------------------------------------------------------------------------------------------- mapper
+
+class MapperWorker:
+    def __init__(self, setup: WorkerSetup, ch: Channels):
+        self.setup = setup
+        self.ch = ch
+        self.live = setup.policy == "live"
+        self.faults = FaultPlan.parse(setup.faults)
+        self.epoch = ch.control.epoch
+        self.steps = 0  # mapping steps done (the warm-up is step 0), over all epochs
+        self._new_state()
+        self.iterations = 0  # optimiser iterations of the current step
+        self.publishing_mid_step = False
+        self.cores = CoreShare(ch.board, Counter.MAPPER_BUSY, Counter.TRACKER_BUSY, Counter.MAPPER_BEAT,
+                               setup.threads, setup.lend_threads)
+        self.backlog_limit = 0 if self.live else setup.keyframe_backlog
+        register_optimizer_step_post_hook(self._after_iteration)
+
+    def _new_state(self) -> None:
+        self.slam: Optional[SLAM] = None
+        self.pending: deque = deque()  # keyframes received, not yet mapped
+        self.map: Optional[SharedMap] = None
+        self.steps_in_epoch = 0
+        self.mapping = False  # a step is in progress (counts as backlog: the keyframe is not mapped yet)
+        self.tracker_done = False
+        self.finished = False
+
+    def run(self) -> None:
+        self.ch.to_parent.put(WorkerReady("mapper", os.getpid()))
+        while not self.ch.control.exiting:
+            self.cores.update()
+            self._sync_epoch()
+            self._serve_requests()
+            self._receive(0.0 if self.pending else POLL_S)
+            if not self.pending:
+                self.cores.busy(False)
+            if self.pending and not self.ch.control.stopping:
+                try:
+                    self._map_next()
+                except Interrupted:
+                    pass
+            elif self.tracker_done and not self.finished:
+                self.ch.to_parent.put(MapperFinished(self.epoch))
+                self.finished = True
+
+    def _sync_epoch(self) -> None:
+        epoch = self.ch.control.epoch
+        if epoch != self.epoch:
+            self.epoch = epoch
+            self._new_state()
+            self._update_backlog()
+
+    def _receive(self, timeout: float) -> None:
+        msg = _get(self.ch.to_mapper, timeout)
+        while msg is not None:
+            if isinstance(msg, KeyframeMessage):
+                self.ch.board.add(Counter.KEYFRAMES_RECEIVED)  # off the queue, even if it is from before a reset
+            if msg.epoch == self.epoch:
+                if isinstance(msg, KeyframeMessage):
+                    self.pending.append(msg)
+                elif isinstance(msg, TrackerFinished):
+                    self.tracker_done = True
+            msg = _get(self.ch.to_mapper, 0.0)
+        self._update_backlog()
+
+    def _update_backlog(self) -> None:
+        self.ch.board.set(Counter.KEYFRAME_BACKLOG, len(self.pending) + int(self.mapping))
+
+    def _keyframe_count(self) -> int:
+        return (len(self.slam.keyframes) if self.slam is not None else 0) + len(self.pending)
+
+    # ------------------------------------------------------------------------------------------- mapping steps
+    def _map_next(self) -> None:
+        self.faults.check("mapper", self.steps)
+        self.cores.busy(True)
+        self.mapping = True
+        try:
+            self._map_next_keyframe()
+        finally:
+            self.mapping = False
+            self._update_backlog()
+
+    def _map_next_keyframe(self) -> None:
+        start = time.perf_counter()
+        if self.slam is None:
+            refined, loss = {}, self._start_map(self.pending.popleft())
+        else:
+            if self.backlog_limit is not None:  # too far behind: the older keyframes join the newest one's window
+                while len(self.pending) > self.backlog_limit + 1:
+                    self.slam.keyframes.append(self.pending.popleft().keyframe())
+            self.slam.keyframes.append(self.pending.popleft().keyframe())
+            self._update_backlog()
+            before = torch.stack([kf.pose for kf in self.slam.keyframes])
+            loss = self._step(self.slam._map_current)
+            refined = {i: kf.pose.numpy().copy() for i, kf in enumerate(self.slam.keyframes)
+                       if not torch.equal(kf.pose, before[i])}
+        version = self._publish()
+        log.debug("mapper: step %d done in %.2f s, map version %d", self.steps, time.perf_counter() - start, version)
+        if self.map is not None and self.steps_in_epoch == 0:
+            self.ch.to_tracker.put(MapAttach(self.epoch, self.map.buffers))
+        elif refined:
+            self.ch.to_tracker.put(RefinedPoses(self.epoch, refined))
+        self.steps_in_epoch += 1
+        self.steps += 1
+        self.ch.board.add(Counter.MAPPING_STEPS)
+        self.ch.board.set(Counter.MAPPER_PEAK_MB, peak_rss_mb())
+        self.ch.to_parent.put(MappingReport(self.epoch, self.steps, version, loss, time.perf_counter() - start,
+                                            time.monotonic(), refined))
+
+    def _start_map(self, msg: KeyframeMessage) -> float:
+        """The map of the first keyframe, over the bound the tracker chose, and its warm-up."""
+        self._update_backlog()
+        self.slam = SLAM(self.setup.cfg, self.setup.intrinsics)  # its images arrive at the working resolution
+        self.slam.bound = msg.bound
+        self.slam.field = SceneField(msg.bound, self.setup.cfg.model)
+        self.slam.keyframes = [msg.keyframe()]
+        self.map = SharedMap.create(self.ch.map_meta, self.slam.field)
+        return self._step(lambda: self.slam.mapper.map(self.slam.field, self.slam.keyframes, [0], first=True).loss,
+                          publish=False)
+
+    def _step(self, run, publish: bool = True) -> float:
+        self.iterations = 0
+        self.publishing_mid_step = publish
+        try:
+            return run()
+        except Interrupted:
+            if self.ch.control.epoch != self.epoch or self.ch.control.exiting:
+                raise
+            return float("nan")  # stopping: keep the map as it is after the last completed iteration
+        finally:
+            self.publishing_mid_step = False
+
+    def _publish(self) -> int:
+        version = self.map.publish(self.slam.field)
+        self.ch.board.add(Counter.PUBLISH_SECONDS, self.map.publish_seconds)
+        self.ch.board.add(Counter.PUBLISHES)
+        return version
+
+    def _after_iteration(self, optimizer, args, kwargs) -> None:
+        """Runs after every optimiser step of a mapping step (a global torch hook: only mapping optimises here)."""
+        control = self.ch.control
+        if control.stopping or control.exiting or control.epoch != self.epoch:
+            raise Interrupted
+        self.cores.update()
+        self.iterations += 1
+        if self.publishing_mid_step and self.iterations % self.setup.publish_every == 0:
+            self._publish()
+        self._serve_requests()
+
+    # ---------------------------------------------------------------------------------------------- snapshots
+    def _serve_requests(self) -> None:
+        req = _get(self.ch.commands, 0.0)
+        while req is not None:
+            self.ch.to_parent.put(MapperSnapshot(req.request_id, self.epoch, self._snapshot(req)))
+            req = _get(self.ch.commands, 0.0)
+
+    def _snapshot(self, req: SnapshotRequest) -> dict:
+        """The map, keyframes and window sampler state: what a `SLAM` checkpoint needs besides the trajectory."""
+        if req.epoch != self.epoch or req.min_keyframes == 0:
+            return {"bound": None, "field": None, "keyframes": None, "rng": None}
+        while self._keyframe_count() < req.min_keyframes:  # keyframes still in flight from the tracker
+            if self.ch.control.exiting or self.ch.control.epoch != self.epoch:
+                return {"bound": None, "field": None, "keyframes": None, "rng": None}  # moot: reset or exit
+            self._receive(POLL_S)
+            self.cores.update()
+        if self.slam is None:  # asked before the warm-up started: a map that is still random
+            first = self.pending[0]
+            bound, field_state = first.bound, SceneField(first.bound, self.setup.cfg.model).state_dict()
+            rng = np.random.default_rng(self.setup.cfg.run.seed).bit_generator.state
+        elif self.slam is not None:
+            bound, field_state, rng = self.slam.bound, self.slam.field.state_dict(), self.slam.rng.bit_generator.state
+        keyframes = (self.slam.keyframes if self.slam is not None else []) + [m.keyframe() for m in self.pending]
+        keyframes = keyframes[: req.min_keyframes]
+        return {
+            "bound": torch.from_numpy(np.asarray(bound, dtype=np.float64)),
+            # Copies: sending a tensor moves its storage to shared memory, and the live parameters must stay ours.
+            "field": {k: v.detach().clone() for k, v in field_state.items()},
+            "keyframes": {
+                "frame_index": torch.tensor([kf.frame_index for kf in keyframes], dtype=torch.int64),
+                "timestamp": torch.tensor([kf.timestamp for kf in keyframes], dtype=torch.float64),
+                "rgb": torch.stack([kf.rgb for kf in keyframes]),
+                "depth": torch.stack([kf.depth for kf in keyframes]),
+                "usable": torch.stack([kf.usable for kf in keyframes]),
+                "pose": torch.stack([kf.pose for kf in keyframes]),
+            },
+            "rng": rng,
+        }
+
+
+def mapper_main(setup: WorkerSetup, channels: Channels, errors) -> None:
+    run_worker("mapper", lambda: MapperWorker(setup, channels).run(), setup, errors)

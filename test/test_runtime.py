@@ -1,0 +1,428 @@
+"""The runtime: the pipelined tracker + mapper processes against the lock-step schedule, crashes, signals, clean
+shutdown and the live input policy, on the synthetic room (160x120, few iterations).
+
+The pipelined run is not bit-identical to the lock-step one (the tracker sees whichever map version is current),
+so its ATE is compared with a tolerance: within 20 % of the lock-step ATE, or within 0.5 cm when both are tiny
+(at these sizes a few millimetres of difference are noise of the random ray sampling).
+"""
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from eslam_core.camera import Frame, Intrinsics
+from eslam_core.config import load_config
+from eslam_core.evaluation.trajectory import Trajectory, ate
+from eslam_core.export import load_checkpoint, map_mesh
+from eslam_core.field import SceneField
+from eslam_core.slam import FrameRecord
+from eslam_core.runtime import RuntimeCrashed, RuntimeSetupError, make_runtime
+from eslam_core.runtime.api import RateMeter, TrajectoryMirror
+from eslam_core.runtime.shared import FrameRing, MapMeta, SharedMap
+from eslam_core.runtime.workers import FaultPlan
+
+ROOT = Path(__file__).resolve().parent.parent
+FAST = {"mapping": {"first_iterations": 30, "iterations": 5, "rays": 2000},
+        "tracking": {"iterations": 5, "rays": 1000}}
+N_FRAMES = 9  # keyframes 0, 4, 8
+CLI_FAST = ["--set", "mapping.first_iterations=5", "--set", "mapping.iterations=3", "--set", "tracking.iterations=3",
+            "--set", "mapping.every=2", "--no-mesh", "-q"]
+
+
+def fast_cfg(**sections):
+    overrides = {k: dict(v) for k, v in FAST.items()}
+    for k, v in sections.items():
+        overrides.setdefault(k, {}).update(v)
+    return load_config("demo", overrides)
+
+
+def alive(pid: int) -> bool:
+    """A process that exists and is not a zombie."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state != "Z"
+
+
+def wait_until(condition, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return condition()
+
+
+def ate_cm(timestamps, poses, frames) -> float:
+    gt = Trajectory(np.array([f.timestamp for f in frames]), np.stack([f.pose for f in frames]))
+    return 100 * ate(Trajectory(timestamps, poses), gt, max_dt=1e-6).rmse
+
+
+def cli(*args, env_extra=None, **kwargs):
+    env = dict(os.environ, PYTHONPATH=str(ROOT), **(env_extra or {}))
+    return subprocess.run([sys.executable, "-m", "eslam_core", *args], cwd=ROOT, env=env, capture_output=True,
+                          text=True, **kwargs)
+
+
+# ------------------------------------------------------------------------------------- pipelined vs lock-step
+
+@pytest.fixture(scope="module")
+def runs(room_sequence):
+    # One torch thread per worker, and for the lock-step run too (it sets the count process-wide: restored below):
+    # on a loaded 2-core machine two OpenMP threads per process can be many times slower than one.
+    threads = torch.get_num_threads()
+    frames = [room_sequence[i] for i in range(N_FRAMES)]
+    out = {"frames": frames}
+    for workers in (1, 2):
+        torch.manual_seed(0)
+        rt = make_runtime(fast_cfg(), room_sequence.intrinsics, workers=workers, policy="offline", threads=1)
+        updates = []
+        start = time.perf_counter()
+        with rt:
+            for f in frames:
+                rt.submit(f)
+                updates += rt.poll()
+            if workers == 2:
+                during = rt.resources()
+                out["alive_during"] = all(alive(p) for p in during["pids"].values())
+                out["shm_during"] = [Path(p).exists() for p in during["shm"]]
+        updates += rt.poll()
+        out[workers] = {"rt": rt, "updates": updates, "health": rt.health(), "seconds": time.perf_counter() - start}
+    torch.set_num_threads(threads)
+    return out
+
+
+def test_pipelined_run_gives_the_lockstep_outputs(runs):
+    frames = runs["frames"]
+    errors = {}
+    for workers in (1, 2):
+        timestamps, poses = runs[workers]["rt"].trajectory()
+        assert len(timestamps) == N_FRAMES
+        assert np.allclose(timestamps, [f.timestamp for f in frames])
+        errors[workers] = ate_cm(timestamps, poses, frames)
+    assert errors[1] < 3.0 and errors[2] < 3.0, errors
+    assert errors[2] <= max(1.2 * errors[1], errors[1] + 0.5), errors
+
+
+def test_poses_come_back_in_order_with_their_latency(runs):
+    for workers in (1, 2):
+        updates = runs[workers]["updates"]
+        assert [u.index for u in updates] == list(range(N_FRAMES))
+        assert [u.index for u in updates if u.keyframe] == [0, 4, 8]
+        assert all(u.pose.shape == (4, 4) and 0 < u.latency_s < 600 for u in updates)
+        # The pose of a keyframe is final when it is tracked, apart from later refinement by mapping.
+        timestamps, poses = runs[workers]["rt"].trajectory()
+        assert np.allclose(updates[0].pose, poses[0])
+
+
+def test_health_of_a_finished_run(runs):
+    for workers in (1, 2):
+        h = runs[workers]["health"]
+        assert (h.frames_received, h.frames_tracked, h.frames_dropped, h.keyframes) == (N_FRAMES, N_FRAMES, 0, 3)
+        assert h.input_queue_depth == 0 and h.keyframe_queue_depth == 0
+        assert h.map_version >= 3 and h.latency_ms_mean > 0 and h.latency_ms_last > 0
+        assert set(h.as_dict()) >= {"frames_received", "mapping_hz", "latency_ms_last", "map_version"}
+    h = runs[2]["health"]
+    # Keeping the tracker's copy of the map current costs milliseconds, against seconds per mapping step.
+    assert 0 < h.map_publish_ms < 500 and 0 < h.map_read_ms < 500
+
+
+def test_workers_and_shared_memory_are_released(runs):
+    assert runs["alive_during"] and runs["shm_during"] and all(runs["shm_during"])
+    res = runs[2]["rt"].resources()
+    assert set(res["pids"]) == {"tracker", "mapper"}
+    assert not any(alive(p) for p in res["pids"].values())
+    assert not any(Path(p).exists() for p in res["shm"])
+    # torch's shared tensors are unlinked when created: nothing of ours may remain under /dev/shm either.
+    ours = [str(os.getpid()), *map(str, res["pids"].values())]
+    assert not [n for n in os.listdir("/dev/shm") if n.startswith("torch_") and n.split("_")[1] in ours]
+
+
+def test_checkpoint_of_the_pipelined_run(runs, tmp_path):
+    rt = runs[2]["rt"]
+    path = rt.save_checkpoint(tmp_path / "checkpoint.pt")
+    slam = load_checkpoint(path)
+    timestamps, poses = rt.trajectory()
+    assert len(slam.records) == N_FRAMES and len(slam.keyframes) == 3
+    assert np.allclose(slam.timestamps(), timestamps) and np.allclose(slam.poses(), poses, atol=1e-6)
+    assert len(map_mesh(slam, 0.08).faces) > 100
+    rt.save_trajectory(tmp_path / "trajectory.txt")
+    assert np.loadtxt(tmp_path / "trajectory.txt").shape == (N_FRAMES, 8)
+
+
+# ------------------------------------------------------------------------------------------------------ crashes
+
+def test_killed_mapper_is_reported_within_a_second(room_sequence):
+    # A long warm-up keeps the mapper busy while it is killed.
+    rt = make_runtime(fast_cfg(mapping={"first_iterations": 100000}), room_sequence.intrinsics, workers=2)
+    rt.start()
+    res = rt.resources()
+    rt.submit(room_sequence[0])
+    assert wait_until(lambda: rt.health().keyframe_queue_depth == 1, 60)
+    os.kill(res["pids"]["mapper"], signal.SIGKILL)
+    killed = time.monotonic()
+    with pytest.raises(RuntimeCrashed) as e:
+        while time.monotonic() - killed < 10:
+            rt.poll()
+            time.sleep(0.01)
+    assert time.monotonic() - killed < 1.0
+    assert e.value.worker == "mapper" and "SIGKILL" in str(e.value)
+    with pytest.raises(RuntimeCrashed):
+        rt.close()
+    rt.close()  # idempotent
+    assert wait_until(lambda: not any(alive(p) for p in res["pids"].values()), 5)
+    assert not any(Path(p).exists() for p in res["shm"])
+
+
+def test_failing_tracker_raises_with_its_traceback(room_sequence, monkeypatch):
+    monkeypatch.setenv("ESLAM_FAULT", "tracker:2")
+    rt = make_runtime(fast_cfg(mapping={"first_iterations": 5}), room_sequence.intrinsics, workers=2)
+    with pytest.raises(RuntimeCrashed) as e:
+        with rt:
+            for i in range(8):
+                rt.submit(room_sequence[i])
+    assert e.value.worker == "tracker"
+    assert "Traceback" in e.value.traceback and "InjectedFault" in e.value.traceback
+    assert "tracker at step 2" in str(e.value)
+    assert wait_until(lambda: not any(alive(p) for p in rt.resources()["pids"].values()), 5)
+
+
+@pytest.mark.parametrize("fault", ["mapper:1", "tracker:1"])
+def test_cli_exits_non_zero_when_a_worker_crashes(room_sequence, tmp_path, fault):
+    start = time.monotonic()
+    res = cli("run", "--config", "demo", "--data", str(room_sequence.root), "--out", str(tmp_path / "out"),
+              "--frames", "0:8", "--workers", "2", *CLI_FAST, env_extra={"ESLAM_FAULT": fault}, timeout=300)
+    assert res.returncode == 1, res.stderr
+    worker = fault.split(":")[0]
+    assert "Traceback (most recent call last)" in res.stderr and "InjectedFault" in res.stderr
+    assert f"the {worker} process failed" in res.stderr
+    assert time.monotonic() - start < 300
+
+
+def test_fault_plan_parsing():
+    assert FaultPlan.parse("mapper:3,tracker:5:kill").steps == {"mapper": (3, "raise"), "tracker": (5, "kill")}
+    with pytest.raises(ValueError, match="worker:step"):
+        FaultPlan.parse("mapper")
+
+
+# ------------------------------------------------------------------------------------------------------ signals
+
+def test_sigterm_stops_a_run_with_a_loadable_checkpoint(room_sequence, tmp_path):
+    out = tmp_path / "out"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "eslam_core", "run", "--config", "demo", "--data",
+                             str(room_sequence.root), "--out", str(out), "--workers", "2", *CLI_FAST],
+                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines = []
+
+    def read_stderr():
+        for line in proc.stderr:
+            lines.append(line)
+
+    reader = threading.Thread(target=read_stderr, daemon=True)
+    reader.start()
+    # Stop it once the tracker has handled frame 0 (it logs the map it creates), i.e. mid-run.
+    assert wait_until(lambda: any("map:" in line and "parameters" in line for line in lines), 120), "".join(lines)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    stdout, _ = proc.communicate(timeout=60)
+    reader.join(5)
+    log = "".join(lines)
+    assert proc.returncode == 0, log
+    assert "stopped by SIGTERM" in stdout
+    slam = load_checkpoint(out / "checkpoint.pt")
+    assert 1 <= len(slam.records) < len(room_sequence)
+    assert np.loadtxt(out / "trajectory.txt", ndmin=2).shape == (len(slam.records), 8)
+    assert not (out / "mesh.ply").exists()  # an interrupted run skips the mesh
+    pids = [int(p) for p in re.search(r"tracker \(pid (\d+)\) and mapper \(pid (\d+)\)", log).groups()]
+    assert wait_until(lambda: not any(alive(p) for p in pids), 5)
+
+
+HELPER = """
+import sys, time
+sys.path.insert(0, {root!r})
+from eslam_core.camera import Intrinsics
+from eslam_core.config import load_config
+from eslam_core.runtime import make_runtime
+
+if __name__ == "__main__":
+    rt = make_runtime(load_config("demo"), Intrinsics(32, 24, 30.0, 30.0, 16.0, 12.0), workers=2)
+    rt.start()
+    r = rt.resources()
+    print(" ".join(map(str, r["pids"].values())), " ".join(r["shm"]), flush=True)
+    time.sleep(120)
+"""
+
+
+def test_workers_die_with_a_killed_parent(tmp_path):
+    script = tmp_path / "parent.py"
+    script.write_text(HELPER.format(root=str(ROOT)))
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        words = proc.stdout.readline().split()
+    finally:
+        proc.kill()  # SIGKILL: no chance to clean up
+    proc.wait(10)
+    assert len(words) > 2, proc.stderr.read()
+    pids, shm = [int(w) for w in words[:2]], words[2:]
+    assert wait_until(lambda: not any(alive(p) for p in pids), 5)
+    # multiprocessing's resource tracker unlinks the semaphores of a killed parent.
+    assert wait_until(lambda: not any(Path(p).exists() for p in shm), 10)
+
+
+# ------------------------------------------------------------------------------------------------- live policy
+
+def test_live_policy_drops_frames_when_fed_too_fast_and_reset(room_sequence, tmp_path):
+    rt = make_runtime(fast_cfg(mapping={"first_iterations": 5}), room_sequence.intrinsics, workers=2, policy="live")
+    updates = []
+    with rt:
+        for i in range(20):
+            rt.submit(room_sequence[i])  # never blocks
+            updates += rt.poll()
+        assert wait_until(lambda: rt.health().frames_tracked >= 2, 120)
+        updates += rt.poll()
+        h = rt.health()
+        assert h.frames_received == 20 and h.frames_dropped > 0
+        assert h.frames_tracked + h.frames_dropped + h.input_queue_depth <= h.frames_received
+        indices = [u.index for u in updates]
+        assert indices == sorted(indices) and len(rt.trajectory()[0]) == len(indices) >= 2
+        # A reset forgets map and trajectory; the next frame starts a new map.
+        rt.reset()
+        assert len(rt.trajectory()[0]) == 0 and rt.poll() == [] and rt.health().keyframes == 0
+        submitted = 20
+        while submitted < len(room_sequence) and len(rt.trajectory()[0]) < 2:  # the warm-up holds the tracker
+            rt.submit(room_sequence[submitted])
+            submitted += 1
+            wait_until(lambda: len(rt.trajectory()[0]) >= 2, 0.5)
+        assert wait_until(lambda: len(rt.trajectory()[0]) >= 2, 120)
+    h = rt.health()
+    assert h.frames_received == submitted and h.frames_tracked + h.frames_dropped == h.frames_received
+    timestamps = rt.trajectory()[0]
+    assert timestamps.min() >= room_sequence[20].timestamp  # only frames after the reset
+    slam = load_checkpoint(rt.save_checkpoint(tmp_path / "checkpoint.pt"))
+    assert np.allclose(slam.timestamps(), timestamps) and slam.keyframes[0].frame_index >= 20
+
+
+def test_live_policy_in_process_and_reset(room_sequence):
+    rt = make_runtime(fast_cfg(mapping={"first_iterations": 5}), room_sequence.intrinsics, workers=1, policy="live")
+    with rt:
+        for i in range(10):
+            rt.submit(room_sequence[i])
+        assert wait_until(lambda: rt.health().frames_tracked >= 1, 60)
+        rt.reset()
+        assert len(rt.trajectory()[0]) == 0 and rt.poll() == []
+        for i in range(10, 14):
+            rt.submit(room_sequence[i])
+            time.sleep(0.3)
+        assert wait_until(lambda: len(rt.trajectory()[0]) >= 1, 60)
+    h = rt.health()
+    assert h.frames_received == 14 and h.frames_dropped > 0
+    assert h.frames_tracked + h.frames_dropped == h.frames_received
+    assert rt.trajectory()[0].min() >= room_sequence[10].timestamp  # only frames after the reset
+
+
+# ------------------------------------------------------------------------------------- set-up errors, building blocks
+
+def test_clear_errors(room_sequence):
+    cfg = fast_cfg()
+    with pytest.raises(ValueError, match="offline, live"):
+        make_runtime(cfg, room_sequence.intrinsics, policy="fastest")
+    with pytest.raises(ValueError, match="workers must be one of"):
+        make_runtime(cfg, room_sequence.intrinsics, workers=3)
+    rt = make_runtime(cfg, room_sequence.intrinsics, workers=1)
+    with pytest.raises(RuntimeSetupError, match="start"):
+        rt.submit(room_sequence[0])
+    with rt:
+        small = Frame(0, 0.0, np.zeros((10, 10, 3), np.uint8), np.zeros((10, 10), np.float32), None)
+        with pytest.raises(RuntimeSetupError, match="do not match the camera"):
+            rt.submit(small)
+    with pytest.raises(RuntimeSetupError, match="closed"):
+        rt.submit(room_sequence[0])
+
+
+def _ring_frame(ring, i, live, timeout=0.0):
+    return ring.put(np.full((4, 5, 3), i, np.uint8), np.full((4, 5), float(i), np.float32), i, i / 10, None,
+                    time.monotonic(), live, timeout)
+
+
+def test_frame_ring_offline_and_live():
+    import torch.multiprocessing as tmp
+
+    ctx = tmp.get_context("spawn")
+    ring = FrameRing(3, 4, 5, ctx)
+    assert [_ring_frame(ring, i, live=False)[0] for i in range(4)] == [True, True, True, False]  # full: no room
+    frame, skipped = ring.take(live=False, timeout=0.1)
+    assert (frame.index, skipped, frame.rgb[0, 0, 0], frame.depth[0, 0]) == (0, 0, 0, 0.0)
+    assert _ring_frame(ring, 3, live=True) == (True, 0)
+    assert _ring_frame(ring, 4, live=True) == (True, 1)  # full: the oldest pending frame (1) makes room
+    frame, skipped = ring.take(live=True, timeout=0.1)  # behind: the newest, skipping 2 and 3
+    assert (frame.index, skipped, frame.timestamp, ring.pending()) == (4, 2, 0.4, 0)
+    assert ring.take(live=True, timeout=0.05) == (None, 0)
+    _ring_frame(ring, 5, live=False)
+    ring.close_input()
+    assert not ring.drained() and ring.take(live=False, timeout=0.1)[0].index == 5 and ring.drained()
+
+
+def test_shared_map_double_buffer():
+    import torch.multiprocessing as tmp
+
+    cfg = load_config("demo")
+    bound = np.array([[0.0, 0.0, 0.0], [0.96, 0.48, 0.48]])
+    writer, reader = SceneField(bound, cfg.model), SceneField(bound, cfg.model)
+    meta = MapMeta(tmp.get_context("spawn"))
+    shared = SharedMap.create(meta, writer)
+    assert shared.read_into(reader, -1) is None  # nothing published yet
+    v1 = shared.publish(writer)
+    assert shared.read_into(reader, -1) == v1 and shared.read_into(reader, v1) is None
+    assert all(torch.equal(a, b) for a, b in zip(writer.parameters(), reader.parameters()))
+    # While a reader holds the newest buffer, the next publication goes to the other one.
+    front = int(meta.state[MapMeta.FRONT])
+    meta.state[MapMeta.PINS + front] += 1
+    held = shared.buffers[front].clone()
+    with torch.no_grad():
+        writer.geometry_planes.table.add_(1.0)
+    v2 = shared.publish(writer)
+    assert v2 == v1 + 1 and int(meta.state[MapMeta.FRONT]) == 1 - front
+    assert torch.equal(shared.buffers[front], held)  # the held version is intact
+    meta.state[MapMeta.PINS + front] -= 1
+    assert shared.read_into(reader, v1) == v2
+    assert torch.equal(reader.geometry_planes.table, writer.geometry_planes.table)
+    other = SceneField(np.array([[0.0, 0.0, 0.0], [0.48, 0.48, 0.48]]), cfg.model)
+    with pytest.raises(RuntimeError, match="different maps"):
+        shared.read_into(other, v1)
+
+
+def test_rate_meter_follows_recent_events():
+    meter = RateMeter(window_s=10.0)
+    assert meter.rate(now=0.0) == 0.0
+    for t in (0.0, 0.5, 1.0, 1.5, 2.0):
+        meter.tick(t)
+    assert meter.rate(now=2.0) == pytest.approx(2.0)
+    assert meter.rate(now=4.0) == pytest.approx(1.0)  # no event for 2 s: the rate decays
+    assert meter.rate(now=30.0) == 0.0  # nothing in the window
+
+
+def test_trajectory_mirror_applies_refinements_in_any_order():
+    def shifted(x: float) -> np.ndarray:
+        pose = np.eye(4)
+        pose[0, 3] = x
+        return pose
+
+    mirror = TrajectoryMirror()
+    mirror.add(FrameRecord(0, 0.0, 0, np.eye(4), 0.0, None), shifted(1.0), keyframe=True)
+    mirror.add(FrameRecord(1, 0.1, 0, shifted(0.5), 0.1, None), shifted(1.5), keyframe=False)
+    mirror.refine({1: shifted(3.0)})  # keyframe 1's refinement arrives before its own record
+    mirror.add(FrameRecord(2, 0.2, 1, np.eye(4), 0.1, None), shifted(2.0), keyframe=True)
+    mirror.refine({0: shifted(2.0)})  # moves frame 1 too: it is stored relative to keyframe 0
+    timestamps, poses = mirror.trajectory()
+    assert np.allclose(timestamps, [0.0, 0.1, 0.2]) and mirror.keyframes == 2
+    assert np.allclose(poses[:, 0, 3], [2.0, 2.5, 3.0])
