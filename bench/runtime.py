@@ -11,7 +11,8 @@ every frame, in order; one torch thread per worker on a 2-core machine).
 Timing: frames are read into memory first. Frame 0 (the map's warm-up, identical work in both modes) is timed on
 its own; throughput is then measured from the end of the warm-up until every remaining frame is tracked and every
 keyframe mapped. The whole-run time is reported too. The machine's load average is recorded before and after each
-mode: on a shared machine compare runs taken under the same load.
+run: on a shared machine use --repeats (runs alternate between the modes) and compare runs taken under the same
+load. OMP_WAIT_POLICY from the environment applies to both modes (the runtime's workers default to PASSIVE).
 Prints a table (frames/s, s/frame, ATE RMSE, peak memory) and the pipelined/lock-step throughput ratio; writes JSON.
 """
 from __future__ import annotations
@@ -25,6 +26,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
@@ -120,6 +122,32 @@ def child(args) -> int:
     return 0
 
 
+def run_child(args, mode: str) -> Optional[dict]:
+    """One mode in a process of its own (its own peak memory); None if it failed."""
+    load_before = os.getloadavg()
+    cmd = [sys.executable, __file__, "--mode", mode, "--data", str(args.data), "--config", args.config,
+           "--frames", f"{args.frames[0]}:{'' if args.frames[1] is None else args.frames[1]}",
+           "--threads", str(args.threads), "--lockstep-threads", str(args.lockstep_threads)]
+    if args.keyframe_backlog is not None:
+        cmd += ["--keyframe-backlog", str(args.keyframe_backlog)]
+    if args.no_lend:
+        cmd += ["--no-lend"]
+    for s in args.set:
+        cmd += ["--set", s]
+    print(f"running {mode} ...", flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+    if proc.returncode != 0 or not lines:
+        print(proc.stderr[-4000:], file=sys.stderr)
+        print(f"{mode} failed (exit code {proc.returncode})", file=sys.stderr)
+        return None
+    result = json.loads(lines[-1][len("RESULT "):])
+    result["load_average_before"] = load_before
+    result["load_average_after"] = os.getloadavg()
+    return result
+
+
 def synthetic_room(size: str, n: int) -> Path:
     from eslam_core.demo import default_cache, parse_size
     from eslam_core.synthetic import ensure_scene
@@ -141,6 +169,7 @@ def main() -> int:
                     help="pipelined: keyframes that may wait before older ones are merged into the newest one's "
                          "mapping step (default: none merged, every keyframe gets its step as in lock-step)")
     ap.add_argument("--no-lend", action="store_true", help="pipelined: an idle worker keeps its threads")
+    ap.add_argument("--repeats", type=int, default=1, help="runs per mode, in alternating order (medians reported)")
     ap.add_argument("--size", default="320x240", help="synthetic room image size (without --data)")
     ap.add_argument("--out", type=Path, default=Path("bench_runtime.json"), help="JSON results file")
     ap.add_argument("--mode", choices=tuple(MODES), help=argparse.SUPPRESS)  # internal: run one mode
@@ -157,48 +186,39 @@ def main() -> int:
     if unknown:
         ap.error(f"unknown mode(s) {unknown}: choose from {', '.join(MODES)}")
     results = {"data": str(Path(args.data).resolve()), "config": args.config, "overrides": args.set,
-               "frames": list(args.frames), "cores": len(os.sched_getaffinity(0)), "modes": {}}
-    for mode in modes:
-        load_before = os.getloadavg()
-        cmd = [sys.executable, __file__, "--mode", mode, "--data", str(args.data), "--config", args.config,
-               "--frames", f"{args.frames[0]}:{'' if args.frames[1] is None else args.frames[1]}",
-               "--threads", str(args.threads), "--lockstep-threads", str(args.lockstep_threads)]
-        if args.keyframe_backlog is not None:
-            cmd += ["--keyframe-backlog", str(args.keyframe_backlog)]
-        if args.no_lend:
-            cmd += ["--no-lend"]
-        for s in args.set:
-            cmd += ["--set", s]
-        print(f"running {mode} ...", flush=True)
-        with tempfile.TemporaryDirectory() as tmp:
-            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp)
-        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
-        if proc.returncode != 0 or not lines:
-            print(proc.stderr[-4000:], file=sys.stderr)
-            print(f"{mode} failed (exit code {proc.returncode})", file=sys.stderr)
-            return 1
-        result = json.loads(lines[-1][len("RESULT "):])
-        result["load_average_before"] = load_before
-        result["load_average_after"] = os.getloadavg()
-        results["modes"][mode] = result
+               "frames": list(args.frames), "cores": len(os.sched_getaffinity(0)),
+               "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "(unset: libgomp default)"),
+               "runs": {m: [] for m in modes}}
+    # Alternate the order (A B, B A, ...) so that a drift of the machine's load hits both modes alike.
+    for repeat in range(args.repeats):
+        for mode in (modes if repeat % 2 == 0 else modes[::-1]):
+            result = run_child(args, mode)
+            if result is None:
+                return 1
+            results["runs"][mode].append(result)
 
     print()
     print(f"{'mode':<10} {'frames/s':>9} {'s/frame':>8} {'warm-up s':>9} {'total s':>8} {'ATE cm':>7} "
           f"{'peak MB':>8} {'threads':>7} {'load 1m':>8}")
-    for mode, r in results["modes"].items():
-        ate_text = "n/a" if r["ate_rmse_cm"] is None else f"{r['ate_rmse_cm']:.2f}"
-        print(f"{mode:<10} {r['steady_frames_per_s']:>9.3f} {r['steady_s_per_frame']:>8.2f} {r['warmup_s']:>9.1f} "
-              f"{r['total_s']:>8.1f} {ate_text:>7} {r['peak_memory_mb']:>8.0f} {r['torch_threads']:>7} "
-              f"{r['load_average_before'][0]:>8.2f}")
-    if {"lockstep", "pipelined"} <= set(results["modes"]):
-        ls, pl = results["modes"]["lockstep"], results["modes"]["pipelined"]
-        ratio = pl["steady_frames_per_s"] / ls["steady_frames_per_s"]
+    for mode, runs in results["runs"].items():
+        for r in runs:
+            ate_text = "n/a" if r["ate_rmse_cm"] is None else f"{r['ate_rmse_cm']:.2f}"
+            print(f"{mode:<10} {r['steady_frames_per_s']:>9.3f} {r['steady_s_per_frame']:>8.2f} "
+                  f"{r['warmup_s']:>9.1f} {r['total_s']:>8.1f} {ate_text:>7} {r['peak_memory_mb']:>8.0f} "
+                  f"{r['torch_threads']:>7} {r['load_average_before'][0]:>8.2f}")
+    if {"lockstep", "pipelined"} <= set(results["runs"]):
+        def median(mode: str, key: str) -> Optional[float]:
+            values = [r[key] for r in results["runs"][mode] if r[key] is not None]
+            return float(np.median(values)) if values else None
+
+        ratio = median("pipelined", "steady_frames_per_s") / median("lockstep", "steady_frames_per_s")
         results["throughput_ratio"] = ratio
-        results["throughput_ratio_total"] = ls["total_s"] / pl["total_s"]
-        print(f"\npipelined / lock-step throughput after the warm-up: {ratio:.2f}x "
-              f"(whole run incl. warm-up: {results['throughput_ratio_total']:.2f}x; target >= 1.5x)")
-        if ls["ate_rmse_cm"] is not None and pl["ate_rmse_cm"] is not None:
-            results["ate_ratio"] = pl["ate_rmse_cm"] / ls["ate_rmse_cm"]
+        results["throughput_ratio_total"] = median("lockstep", "total_s") / median("pipelined", "total_s")
+        print(f"\npipelined / lock-step throughput after the warm-up (medians of {args.repeats} run(s) each): "
+              f"{ratio:.2f}x (whole run incl. warm-up: {results['throughput_ratio_total']:.2f}x; target >= 1.5x)")
+        ate_ls, ate_pl = median("lockstep", "ate_rmse_cm"), median("pipelined", "ate_rmse_cm")
+        if ate_ls is not None and ate_pl is not None:
+            results["ate_ratio"] = ate_pl / ate_ls
             print(f"ATE pipelined / lock-step: {results['ate_ratio']:.2f} (target <= 1.2)")
     args.out.write_text(json.dumps(results, indent=2))
     print(f"results -> {args.out}")

@@ -389,6 +389,8 @@ class TrackerWorker:
             self._new_state()
 
     def _receive(self, timeout: float) -> None:
+        # The mapper only speaks of an epoch after this worker sent it that epoch's first keyframe, so a message is
+        # never newer than this worker's epoch: older ones (from before a reset) are dropped.
         msg = _get(self.ch.to_tracker, timeout)
         while msg is not None:
             if msg.epoch == self.epoch:
@@ -475,6 +477,7 @@ class MapperWorker:
         self.live = setup.policy == "live"
         self.faults = FaultPlan.parse(setup.faults)
         self.epoch = ch.control.epoch
+        self.early: list = []  # messages of an epoch this worker has not caught up with yet (see _receive)
         self.steps = 0  # mapping steps done (the warm-up is step 0), over all epochs
         self._new_state()
         self.iterations = 0  # optimiser iterations of the current step
@@ -512,10 +515,15 @@ class MapperWorker:
                 self.finished = True
 
     def _sync_epoch(self) -> None:
+        """Catch up with a reset: forget the map, then take the new epoch's messages that came early."""
         epoch = self.ch.control.epoch
         if epoch != self.epoch:
             self.epoch = epoch
             self._new_state()
+            early, self.early = self.early, []
+            for msg in early:
+                if msg.epoch == epoch:  # (after two quick resets, the first one's messages are moot)
+                    self._accept(msg)
             self._update_backlog()
 
     def _receive(self, timeout: float) -> None:
@@ -523,13 +531,20 @@ class MapperWorker:
         while msg is not None:
             if isinstance(msg, KeyframeMessage):
                 self.ch.board.add(Counter.KEYFRAMES_RECEIVED)  # off the queue, even if it is from before a reset
-            if msg.epoch == self.epoch:
-                if isinstance(msg, KeyframeMessage):
-                    self.pending.append(msg)
-                elif isinstance(msg, TrackerFinished):
-                    self.tracker_done = True
+            # After a reset the tracker may start the new map while this worker is still in the old epoch (e.g.
+            # idle in this very call): keep such messages for _sync_epoch. Older epochs' messages are dropped.
+            if msg.epoch > self.epoch:
+                self.early.append(msg)
+            elif msg.epoch == self.epoch:
+                self._accept(msg)
             msg = _get(self.ch.to_mapper, 0.0)
         self._update_backlog()
+
+    def _accept(self, msg) -> None:
+        if isinstance(msg, KeyframeMessage):
+            self.pending.append(msg)
+        elif isinstance(msg, TrackerFinished):
+            self.tracker_done = True
 
     def _update_backlog(self) -> None:
         self.ch.board.set(Counter.KEYFRAME_BACKLOG, len(self.pending) + int(self.mapping))
