@@ -430,7 +430,7 @@ class TrackerWorker:
         start = time.monotonic()
         res = self.state.step(frame)
         done = time.monotonic()
-        log.debug("tracker: frame %d tracked in %.2f s", item.index, done - start)
+        log.debug("tracker: frame %d tracked in %.2f s (%d threads)", item.index, done - start, torch.get_num_threads())
         for position in self.state.handed_over:
             self._hand_over(position)
         self.state.handed_over.clear()
@@ -578,7 +578,8 @@ class MapperWorker:
             refined = {i: kf.pose.numpy().copy() for i, kf in enumerate(self.slam.keyframes)
                        if not torch.equal(kf.pose, before[i])}
         version = self._publish()
-        log.debug("mapper: step %d done in %.2f s, map version %d", self.steps, time.perf_counter() - start, version)
+        log.debug("mapper: step %d done in %.2f s (%d threads at the end), map version %d", self.steps,
+                  time.perf_counter() - start, torch.get_num_threads(), version)
         if self.map is not None and self.steps_in_epoch == 0:
             self.ch.to_tracker.put(MapAttach(self.epoch, self.map.buffers))
         elif refined:
