@@ -26,10 +26,8 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from ..camera import Frame, Intrinsics
 from ..config import Config
-from ..evaluation.trajectory import Trajectory, write_tum
-from ..export import map_mesh, save_checkpoint
-from ..mesh import save_ply
 from ..slam import SLAM
+from .saving import SavingMixin
 from .api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, TrajectoryMirror, \
     check_frame, check_policy
 
@@ -42,7 +40,7 @@ class _StepInterrupted(Exception):
     """Raised inside an optimiser step of the SLAM thread when the caller asked to stop now or to reset."""
 
 
-class InProcessRuntime:
+class InProcessRuntime(SavingMixin):
     def __init__(self, cfg: Config, intrinsics: Intrinsics, policy: str = "offline", threads: Optional[int] = None,
                  capacity: int = DEFAULT_CAPACITY):
         self.cfg = cfg
@@ -140,16 +138,6 @@ class InProcessRuntime:
         with self._slam_lock:
             # Tensors are shared with the live state, which replaces (never modifies) them; the field is copied.
             return SLAM.from_state_dict(self.slam.state_dict())
-
-    def save_checkpoint(self, path) -> Path:
-        return save_checkpoint(self.snapshot(), Path(path))
-
-    def save_mesh(self, path, resolution: float | None = None) -> Path:
-        return save_ply(map_mesh(self.snapshot(), resolution or self.cfg.mesh.resolution), Path(path))
-
-    def save_trajectory(self, path) -> Path:
-        timestamps, poses = self.trajectory()
-        return write_tum(Path(path), Trajectory(timestamps, poses))
 
     def reset(self) -> None:
         self._check_running()

@@ -46,13 +46,11 @@ import torch.multiprocessing as tmp
 
 from ..camera import Frame, Intrinsics
 from ..config import Config
-from ..evaluation.trajectory import Trajectory, write_tum
-from ..export import map_mesh, save_checkpoint
 from ..field import SceneField
 from ..frames import prepare_frame, working_intrinsics
 from ..keyframes import Keyframe
-from ..mesh import save_ply
 from ..slam import SLAM, FrameRecord
+from .saving import SavingMixin
 from .api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, TrajectoryMirror, \
     check_frame, check_policy
 from .shared import Control, Counter, FrameRing, HealthBoard, MapMeta
@@ -133,7 +131,7 @@ def assemble_slam(cfg: Config, intrinsics: Intrinsics, mapper_state: dict, recor
     return slam
 
 
-class MultiProcessRuntime:
+class MultiProcessRuntime(SavingMixin):
     def __init__(self, cfg: Config, intrinsics: Intrinsics, policy: str = "offline", threads: Optional[int] = None,
                  capacity: int = DEFAULT_CAPACITY, publish_every: int = 5, lend_threads: bool = True,
                  keyframe_backlog: Optional[int] = None):
@@ -467,16 +465,6 @@ class MultiProcessRuntime:
         b = self._board
         return assemble_slam(self.cfg, self.intrinsics, state, records, int(b.get(Counter.POINTS_OUTSIDE)),
                              int(b.get(Counter.POINTS_SEEN)))
-
-    def save_checkpoint(self, path) -> Path:
-        return save_checkpoint(self.snapshot(), Path(path))
-
-    def save_mesh(self, path, resolution: float | None = None) -> Path:
-        return save_ply(map_mesh(self.snapshot(), resolution or self.cfg.mesh.resolution), Path(path))
-
-    def save_trajectory(self, path) -> Path:
-        timestamps, poses = self.trajectory()
-        return write_tum(Path(path), Trajectory(timestamps, poses))
 
     def reset(self) -> None:
         self._check_running()
