@@ -140,11 +140,17 @@ class TrackingConfig:
     outlier_factor: float = 10.0  # drop rays whose depth error exceeds this times the batch median
     constant_velocity: bool = True
     weights: LossWeights = field(default_factory=lambda: LossWeights(10.0, 200.0, 50.0, 1.0, 5.0))
-    huber: float = 0.01  # metres; robust scale of the SDF residuals ("sdf" method)
+    # The "sdf" method: robust scales of its geometric (metres) and photometric (grey level in [0, 1]) residuals,
+    # and the weight of the photometric one (0 = depth only).
+    huber: float = 0.01
+    color_huber: float = 0.1
+    color_weight: float = 1.0
 
     def validate(self, check) -> None:
         check(self.method in ("render", "sdf"), "tracking.method", "must be 'render' or 'sdf'")
         check(self.huber > 0, "tracking.huber", "must be positive (metres)")
+        check(self.color_huber > 0, "tracking.color_huber", "must be positive (grey level)")
+        check(self.color_weight >= 0, "tracking.color_weight", "must be >= 0 (0 disables the photometric term)")
         check(self.iterations >= 0, "tracking.iterations", "must be >= 0")
         check(self.rays > 0, "tracking.rays", "must be positive")
         check(self.lr_rotation >= 0 and self.lr_translation >= 0, "tracking.lr_rotation", "must be >= 0")

@@ -21,6 +21,7 @@ from .field import SceneField
 from .frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
 from .keyframes import Keyframe, select_window
 from .mapping import Mapper
+from .observed import ObservedSpace
 from .tracking import constant_velocity, make_tracker, time_ratio
 
 log = logging.getLogger("eslam")
@@ -57,6 +58,7 @@ class SLAM:
         self.mapper = Mapper(cfg, self.dirs_cam, self.intr.height, self.intr.width)
         self.field: Optional[SceneField] = None
         self.bound: Optional[np.ndarray] = None
+        self.observed: Optional[ObservedSpace] = None
         self.keyframes: list[Keyframe] = []
         self.records: list[FrameRecord] = []
         self.points_outside = 0
@@ -90,12 +92,12 @@ class SLAM:
         init = torch.from_numpy(constant_velocity(prev2, self.pose(n - 1), ratio)).float()
         # The bound test uses the predicted pose: a few centimetres off at most, and it saves a second pass.
         usable = self._usable_pixels(pf, init)
-        result = self.tracker.track(self.field, pf, init, usable)
+        result = self.tracker.track(self.field, pf, init, usable, self.observed)
         pose = result.pose
         is_keyframe = n % self.cfg.mapping.every == 0
         mapping_loss = float("nan")
         if is_keyframe:
-            self.keyframes.append(Keyframe.from_tensors(pf.index, pf.timestamp, pf.rgb, pf.depth, usable, pose))
+            self._add_keyframe(pf, usable, pose)
             self._record(pf, len(self.keyframes) - 1, np.eye(4), result.loss)
             mapping_loss = self._map_current()
         else:
@@ -120,12 +122,24 @@ class SLAM:
         pose0 = pf.gt_pose if pf.gt_pose is not None else np.eye(4)
         self.bound = self._scene_bound(pf, pose0)
         self.field = SceneField(self.bound, self.cfg.model)
+        self.observed = ObservedSpace(self.bound, self.cfg.model.truncation)
         log.info("map: %d parameters over bound %s", self.field.parameter_count(), np.round(self.bound, 3).tolist())
         pose = torch.from_numpy(pose0).float()
-        usable = self._usable_pixels(pf, pose)
-        self.keyframes.append(Keyframe.from_tensors(pf.index, pf.timestamp, pf.rgb, pf.depth, usable, pose))
+        self._add_keyframe(pf, self._usable_pixels(pf, pose), pose)
         self._record(pf, 0, np.eye(4), 0.0)
         return pose0
+
+    def _add_keyframe(self, pf: PreparedFrame, usable: torch.Tensor, pose: torch.Tensor) -> None:
+        self.keyframes.append(Keyframe.from_tensors(pf.index, pf.timestamp, pf.rgb, pf.depth, usable, pose))
+        self._observe(pf.depth, usable, pose)
+
+    def _observe(self, depth: torch.Tensor, usable: torch.Tensor, pose: torch.Tensor, stride: int = 2) -> None:
+        """Mark the keyframe's surface as observed space (every `stride`-th pixel is plenty for 6 cm voxels)."""
+        take = torch.zeros_like(usable)
+        take[::stride, ::stride] = True
+        flat = torch.nonzero((take & usable & (depth > 0)).reshape(-1)).squeeze(1)
+        points = self.dirs_cam[flat] * depth.reshape(-1)[flat, None] @ pose[:3, :3].T + pose[:3, 3]
+        self.observed.add(points)
 
     def _scene_bound(self, pf: PreparedFrame, pose0: np.ndarray) -> np.ndarray:
         step = self.cfg.model.coarse_resolution
@@ -195,7 +209,11 @@ class SLAM:
         if state["field"] is not None:
             slam.field = SceneField(slam.bound, slam.cfg.model)
             slam.field.load_state_dict(state["field"])
+            slam.observed = ObservedSpace(slam.bound, slam.cfg.model.truncation)
         slam.keyframes = [Keyframe(**kf) for kf in state["keyframes"]]
+        for kf in slam.keyframes:
+            if kf.depth.numel():
+                slam._observe(kf.depth_image(), kf.usable, kf.pose)
         slam.records = [FrameRecord(**dict(r, relative=r["relative"].numpy(),
                                            gt_pose=None if r["gt_pose"] is None else r["gt_pose"].numpy()))
                         for r in state["records"]]

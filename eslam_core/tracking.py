@@ -18,6 +18,7 @@ from .field import SceneField
 from .frames import PreparedFrame, border_mask
 from .geometry import params_to_pose, pose_to_params, rays_to_world, scale_motion
 from .losses import eslam_losses
+from .observed import ObservedSpace
 from .rendering import render_rays
 
 
@@ -71,7 +72,8 @@ class Tracker:
         self.border = border_mask(height, width, cfg.tracking.border).reshape(-1)
 
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
-              usable: torch.Tensor | None = None) -> TrackingResult:
+              usable: torch.Tensor | None = None, observed: ObservedSpace | None = None) -> TrackingResult:
+        """`observed` is not used: rendering with the free-space and depth losses copes with unmapped space."""
         tc = self.cfg.tracking
         valid = self.border & (frame.depth.reshape(-1) > 0)
         if usable is not None:

@@ -84,3 +84,16 @@ def test_resume_continues_where_the_checkpoint_stopped(room_sequence, run, tmp_p
     assert resumed.n_frames == 0  # nothing left to do
     slam = load_checkpoint(tmp_path / "checkpoint.pt")
     assert len(slam.records) == 30 and np.allclose(slam.poses(), load_checkpoint(out / "checkpoint.pt").poses())
+
+
+def test_checkpoint_restores_observed_space(run):
+    """The fast tracker's observed space is rebuilt from the keyframes when a checkpoint is loaded."""
+    summary, out = run
+    slam = load_checkpoint(out / "checkpoint.pt")
+    assert slam.observed is not None and slam.observed.seen.any()
+    kf = slam.keyframes[-1]
+    d = kf.depth_image()
+    v, u = (int(x) for x in torch.nonzero(d > 0)[len(torch.nonzero(d > 0)) // 2])
+    seen_point = slam.dirs_cam[v * d.shape[1] + u] * d[v, u] @ kf.pose[:3, :3].T + kf.pose[:3, 3]
+    camera_centre = kf.pose[:3, 3]  # the camera sits in free space, away from every surface
+    assert slam.observed.contains(torch.stack([seen_point, camera_centre])).tolist() == [True, False]

@@ -76,13 +76,15 @@ def test_outlier_mask_drops_large_depth_errors():
     assert outlier_mask(err, 10.0).tolist() == [True, True, True, True, False]
 
 
-def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence):
-    """The fast Gauss-Newton SDF alignment converges from 3 cm / 3 degrees too."""
+@pytest.mark.parametrize("color_weight", [0.0, 1.0])
+def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_weight):
+    """The fast Gauss-Newton alignment (depth only, and depth with colour) converges from 3 cm / 3 degrees too."""
     from eslam_core.sdf_tracking import SDFTracker
 
     cfg, field, dirs = fitted_map
     cfg.tracking.iterations = 15
     cfg.tracking.rays = 3000
+    cfg.tracking.color_weight = color_weight
     ds = room_sequence
     frame = prepare_frame(ds[9], ds.intrinsics, cfg.camera)
     gt = frame.gt_pose

@@ -1,0 +1,44 @@
+"""Observed space: the voxels of the scene bound that lie near a surface some keyframe saw.
+
+Mapping fits the SDF only along keyframe rays; elsewhere the decoded SDF is whatever the initial plane features
+give, often a small value that looks like a surface. The fast SDF tracker aligns depth points to the SDF, so points
+on geometry the map has not seen yet (a wall coming into view) would pull the pose towards that fake surface. The
+tracker therefore uses only points inside observed space. The grid is coarse (one truncation per voxel, grown by
+one voxel), so keyframe pose refinements of a few centimetres do not matter.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+
+class ObservedSpace:
+    def __init__(self, bound: np.ndarray, voxel: float):
+        self.origin = torch.tensor(bound[0], dtype=torch.float32)
+        self.voxel = voxel
+        self.shape = tuple(int(n) for n in np.ceil((bound[1] - bound[0]) / voxel - 1e-6))
+        self.seen = torch.zeros(self.shape, dtype=torch.bool)
+        self._near: torch.Tensor | None = None  # `seen` grown by one voxel, computed when first needed
+
+    def _voxels(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        ijk = torch.floor((points - self.origin) / self.voxel).long()
+        inside = ((ijk >= 0) & (ijk < torch.tensor(self.shape))).all(-1)
+        return ijk, inside
+
+    def add(self, points: torch.Tensor) -> None:
+        """Mark the voxels holding these surface points (world frame, (N, 3))."""
+        ijk, inside = self._voxels(points)
+        ijk = ijk[inside]
+        self.seen[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+        self._near = None
+
+    def contains(self, points: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: the point lies within about a voxel of observed surface."""
+        if self._near is None:
+            self._near = F.max_pool3d(self.seen[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+        ijk, inside = self._voxels(points)
+        result = torch.zeros(len(points), dtype=torch.bool)
+        ijk = ijk[inside]
+        result[inside] = self._near[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+        return result
