@@ -125,7 +125,7 @@ def child(args) -> int:
 def run_child(args, mode: str) -> Optional[dict]:
     """One mode in a process of its own (its own peak memory); None if it failed."""
     load_before = os.getloadavg()
-    cmd = [sys.executable, __file__, "--mode", mode, "--data", str(args.data), "--config", args.config,
+    cmd = [sys.executable, __file__, "--mode", mode, "--data", str(Path(args.data).resolve()), "--config", args.config,
            "--frames", f"{args.frames[0]}:{'' if args.frames[1] is None else args.frames[1]}",
            "--threads", str(args.threads), "--lockstep-threads", str(args.lockstep_threads)]
     if args.keyframe_backlog is not None:
