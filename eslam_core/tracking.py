@@ -73,7 +73,7 @@ class Tracker:
 
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
               usable: torch.Tensor | None = None, observed: ObservedSpace | None = None) -> TrackingResult:
-        """`observed` is not used: rendering with the free-space and depth losses copes with unmapped space."""
+        """`observed` is not used: the paper's tracker renders every sampled ray, as the official code does."""
         tc = self.cfg.tracking
         valid = self.border & (frame.depth.reshape(-1) > 0)
         if usable is not None:
