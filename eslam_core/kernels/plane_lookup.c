@@ -92,6 +92,8 @@ void plane_backward_points(const float *points, int64_t N, const float *table, i
                     int j = 4 * k + q;
                     const float *r = table + c.rows[j] * C;
                     float dot = 0.f;
+                    /* Without this the compiler keeps the float sum in order, i.e. scalar: 4x slower. */
+                    #pragma omp simd reduction(+:dot)
                     for (int64_t ch = 0; ch < C; ++ch) dot += go[ch] * r[ch];
                     ga += dot * c.dw_da[j];
                     gb += dot * c.dw_db[j];
