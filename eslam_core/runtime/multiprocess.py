@@ -26,6 +26,7 @@ step instead, so it returns within about one optimiser iteration.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import itertools
 import logging
 import multiprocessing.connection
@@ -545,9 +546,11 @@ class MultiProcessRuntime(SavingMixin):
                 p.close()
         for conn in (*self._errors.values(), self._wake_r, self._wake_w):
             conn.close()
-        # Dropping the last references unlinks the semaphores and unmaps the shared tensors.
+        # Dropping the last references unlinks the semaphores and unmaps the shared tensors; some of them sit in
+        # reference cycles (queues and their feeder threads), so collect now rather than at some later moment.
         self._ring = self._map_meta = self._channels = self._board = self._control = None
         self._queues, self._processes, self._errors = {}, {}, {}
+        gc.collect()
 
     # ------------------------------------------------------------------------------------------- diagnostics
     def resources(self) -> dict:
