@@ -162,12 +162,11 @@ def main() -> int:
         rclpy.try_shutdown()
 
     stamps = sorted(listener.poses)
-    first = round(float(bag_timestamps(ds, 30.0)[0]), 6)
-    stream = {s: v for s, v in listener.poses.items() if s != first}  # the lead-in's pose is the warm-up's
+    bag_stamps = np.round(bag_timestamps(ds, 30.0), 6)
+    stream = {s: v for s, v in listener.poses.items() if s != bag_stamps[0]}  # the lead-in's pose is the warm-up's
     pose_times = sorted(t for t, _ in stream.values())
     latency = np.array([t - listener.images[s] for s, (t, _) in stream.items() if s in listener.images])
     truth = ds.gt_poses()
-    bag_stamps = np.round(bag_timestamps(ds, 30.0), 6)
     known = [(s, truth[i]) for i, s in enumerate(bag_stamps) if truth[i] is not None and s in listener.poses]
     ate_cm = None
     if len(known) >= 3:
