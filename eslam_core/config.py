@@ -145,12 +145,21 @@ class TrackingConfig:
     huber: float = 0.01
     color_huber: float = 0.1
     color_weight: float = 1.0
+    # ... and of the photometric residual against the newest keyframe's images (see photometric.py), aligned
+    # coarse to fine over `pyramid_levels` image levels (0 = not used).
+    photometric_huber: float = 0.05
+    photometric_weight: float = 1.0
+    pyramid_levels: int = 3
 
     def validate(self, check) -> None:
         check(self.method in ("render", "sdf"), "tracking.method", "must be 'render' or 'sdf'")
         check(self.huber > 0, "tracking.huber", "must be positive (metres)")
         check(self.color_huber > 0, "tracking.color_huber", "must be positive (grey level)")
-        check(self.color_weight >= 0, "tracking.color_weight", "must be >= 0 (0 disables the photometric term)")
+        check(self.color_weight >= 0, "tracking.color_weight", "must be >= 0 (0 disables the map's colour term)")
+        check(self.photometric_huber > 0, "tracking.photometric_huber", "must be positive (grey level)")
+        check(self.photometric_weight >= 0, "tracking.photometric_weight",
+              "must be >= 0 (0 disables the keyframe photometric term)")
+        check(1 <= self.pyramid_levels <= 6, "tracking.pyramid_levels", "must be between 1 and 6")
         check(self.iterations >= 0, "tracking.iterations", "must be >= 0")
         check(self.rays > 0, "tracking.rays", "must be positive")
         check(self.lr_rotation >= 0 and self.lr_translation >= 0, "tracking.lr_rotation", "must be >= 0")
@@ -170,7 +179,9 @@ class MappingConfig:
     lr_planes: float = 0.005
     lr_decoders: float = 0.001
     lr_poses: float = 0.001
-    joint_poses_after: int = 4  # window poses are optimised once this many keyframes exist
+    # Window keyframe poses are optimised jointly with the map (the paper) once this many keyframes exist.
+    joint_poses: bool = True
+    joint_poses_after: int = 4
     border: int = 0
     weights: LossWeights = field(default_factory=LossWeights)
 

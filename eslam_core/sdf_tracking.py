@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import torch
 
+from .camera import Intrinsics
 from .config import Config
 from .field import SceneField
 from .frames import PreparedFrame, border_mask
+from .keyframes import Keyframe
 from .observed import ObservedSpace
+from .photometric import GREY, Reference, grey_pyramid, photometric_residuals, sample
 from .tracking import TrackingResult, frozen
-
-GREY = torch.tensor([0.299, 0.587, 0.114])
 SATURATED_COLOR = 3.0  # the photometric penalty of a saturated point, in units of color_huber
 
 
@@ -66,7 +67,8 @@ def field_residuals(field: SceneField, x: torch.Tensor, truncation: float, with_
 def gauss_newton_step(x: torch.Tensor, r: torch.Tensor, grad: torch.Tensor, w: torch.Tensor,
                       damping: float) -> torch.Tensor:
     """(v, w) minimising sum w_i (r_i + J_i [v; w])^2 + damping |.|^2, J_i = [grad_i, x_i x grad_i]."""
-    J = torch.cat([grad, torch.cross(x, grad, dim=-1)], dim=-1).double()
+    x, grad = x.double(), grad.double()
+    J = torch.cat([grad, torch.cross(x, grad, dim=-1)], dim=-1)
     Jw = J * w.double()[:, None]
     H = Jw.T @ J
     b = Jw.T @ r.double()
@@ -74,14 +76,37 @@ def gauss_newton_step(x: torch.Tensor, r: torch.Tensor, grad: torch.Tensor, w: t
     return -torch.linalg.solve(H, b)
 
 
+def pyramid_level(iteration: int, iterations: int, levels: int) -> int:
+    """Coarse to fine: the iterations are split evenly over the levels, the coarsest first."""
+    return min(levels - 1, levels * (iterations - 1 - iteration) // max(iterations, 1))
+
+
 class SDFTracker:
-    def __init__(self, cfg: Config, dirs_cam: torch.Tensor, height: int, width: int):
+    def __init__(self, cfg: Config, dirs_cam: torch.Tensor, intr: Intrinsics):
         self.cfg = cfg
         self.dirs_cam = dirs_cam
-        self.border = border_mask(height, width, cfg.tracking.border).reshape(-1)
+        self.intr = intr
+        self.border = border_mask(intr.height, intr.width, cfg.tracking.border).reshape(-1)
+        self._reference: Reference | None = None
+
+    def reference(self, keyframe: Keyframe | None) -> Reference | None:
+        """The keyframe prepared for photometric alignment, rebuilt only when the keyframe changes (its pose is
+        read every time: mapping refines it)."""
+        if keyframe is None or keyframe.rgb.numel() == 0 or self.cfg.tracking.photometric_weight == 0:
+            return None
+        ref = self._reference
+        if ref is None or ref.frame_index != keyframe.frame_index:
+            ref = Reference.build(keyframe.frame_index, keyframe.rgb.float() / 255.0, keyframe.depth_image(),
+                                  keyframe.pose, self.cfg.tracking.pyramid_levels)
+            self._reference = ref
+        ref.pose = keyframe.pose.double()
+        return ref
 
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
-              usable: torch.Tensor | None = None, observed: ObservedSpace | None = None) -> TrackingResult:
+              usable: torch.Tensor | None = None, observed: ObservedSpace | None = None,
+              keyframe: Keyframe | None = None) -> TrackingResult:
+        """Align the frame to the map (SDF and, with `color_weight`, the map's colour) and, with
+        `photometric_weight`, to the images of `keyframe` (normally the newest keyframe)."""
         tc, T = self.cfg.tracking, self.cfg.model.truncation
         depth = frame.depth.reshape(-1)
         valid = self.border & (depth > 0)
@@ -94,15 +119,21 @@ class SDFTracker:
         p_cam = (self.dirs_cam[pix] * depth[pix, None]).double()
         lam = tc.color_weight
         grey_pixel = frame.rgb.reshape(-1, 3)[pix] @ GREY if lam > 0 else None
+        ref = self.reference(keyframe)
+        if ref is not None:
+            u, v = (pix % self.intr.width).float(), (pix // self.intr.width).float()
+            grey_current = [sample(level[None, None], u, v, 2.0**i)[:, 0].double()
+                            for i, level in enumerate(grey_pyramid(frame.rgb, len(ref.levels)))]
         R, t = init_pose[:3, :3].double(), init_pose[:3, 3].double()
-        used = None  # the points on observed surface at the initial pose; fixed, so that costs compare
+        used = photo_used = None  # the points scored, fixed at the initial pose so that costs compare
         best_cost, best = float("inf"), init_pose.clone()
         with frozen(field):
             for it in range(tc.iterations + 1):  # the last pass only scores the final pose
-                x = (p_cam @ R.T + t).float()
-                sdf, sdf_grad, grey, grey_grad = field_residuals(field, x, T, lam > 0)
+                x = p_cam @ R.T + t
+                sdf, sdf_grad, grey, grey_grad = field_residuals(field, x.float(), T, lam > 0)
                 if used is None:
-                    used = observed.contains(x) if observed is not None else torch.ones(len(x), dtype=torch.bool)
+                    used = observed.contains(x.float()) if observed is not None else \
+                        torch.ones(len(x), dtype=torch.bool)
                     if used.sum() < 30:
                         break
                 band = used & (sdf.abs() < 0.99 * T)
@@ -112,21 +143,41 @@ class SDFTracker:
                     r_col = (grey - grey_pixel) / tc.color_huber
                     cost = cost + lam * torch.where(band, huber_cost(r_col), huber_cost(torch.tensor(SATURATED_COLOR)))
                 cost = float(cost[used].mean())
+                if ref is not None:
+                    r_ph, g_ph, ok = photometric_residuals(x, grey_current[0], ref, 0, self.intr, T)
+                    if photo_used is None:
+                        photo_used = ok
+                    if photo_used.any():
+                        r_ph = r_ph / tc.photometric_huber
+                        photo_cost = torch.where(ok, huber_cost(r_ph), huber_cost(torch.tensor(SATURATED_COLOR)))
+                        cost += tc.photometric_weight * float(photo_cost[photo_used].mean())
                 if cost < best_cost:
                     best_cost = cost
                     best = torch.eye(4)
                     best[:3, :3], best[:3, 3] = R.float(), t.float()
                 if it == tc.iterations or band.sum() < 30:
                     break
-                xb = x[band]
-                r, g, w = r_geo[band], sdf_grad[band] / tc.huber, huber_weights(r_geo[band])
+                xs, rs, gs, ws = [x[band]], [r_geo[band]], [sdf_grad[band].double() / tc.huber], \
+                    [huber_weights(r_geo[band])]
                 if lam > 0:
                     rc = r_col[band]
-                    xb = torch.cat([xb, xb])
-                    r = torch.cat([r, rc])
-                    g = torch.cat([g, grey_grad[band] / tc.color_huber])
-                    w = torch.cat([w, lam * huber_weights(rc)])
-                delta = gauss_newton_step(xb, r, g, w, damping=1e-4)
+                    xs.append(x[band])
+                    rs.append(rc)
+                    gs.append(grey_grad[band].double() / tc.color_huber)
+                    ws.append(lam * huber_weights(rc))
+                if ref is not None and photo_used.any():
+                    level = pyramid_level(it, tc.iterations, len(ref.levels))
+                    if level > 0:
+                        r_ph, g_ph, ok = photometric_residuals(x, grey_current[level], ref, level, self.intr, T)
+                        r_ph = r_ph / tc.photometric_huber
+                    keep = ok & photo_used
+                    xs.append(x[keep])
+                    rs.append(r_ph[keep])
+                    gs.append(g_ph[keep] / tc.photometric_huber)
+                    ws.append(tc.photometric_weight * huber_weights(r_ph[keep]))
+                delta = gauss_newton_step(torch.cat(xs), torch.cat(rs), torch.cat(gs), torch.cat(ws), damping=1e-4)
+                if not torch.isfinite(delta).all():
+                    break
                 dR = so3_exp(delta[3:])
                 R, t = dR @ R, dR @ t + delta[:3]
                 if delta.norm() < 1e-6:

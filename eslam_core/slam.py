@@ -54,7 +54,7 @@ class SLAM:
         self.input_intrinsics = intrinsics
         self.intr = working_intrinsics(intrinsics, cfg.camera)
         self.dirs_cam = pixel_directions_table(self.intr)
-        self.tracker = make_tracker(cfg, self.dirs_cam, self.intr.height, self.intr.width)
+        self.tracker = make_tracker(cfg, self.dirs_cam, self.intr)
         self.mapper = Mapper(cfg, self.dirs_cam, self.intr.height, self.intr.width)
         self.field: Optional[SceneField] = None
         self.bound: Optional[np.ndarray] = None
@@ -92,7 +92,7 @@ class SLAM:
         init = torch.from_numpy(constant_velocity(prev2, self.pose(n - 1), ratio)).float()
         # The bound test uses the predicted pose: a few centimetres off at most, and it saves a second pass.
         usable = self._usable_pixels(pf, init)
-        result = self.tracker.track(self.field, pf, init, usable, self.observed)
+        result = self.tracker.track(self.field, pf, init, usable, self.observed, self.keyframes[-1])
         pose = result.pose
         is_keyframe = n % self.cfg.mapping.every == 0
         mapping_loss = float("nan")
@@ -133,13 +133,16 @@ class SLAM:
         self.keyframes.append(Keyframe.from_tensors(pf.index, pf.timestamp, pf.rgb, pf.depth, usable, pose))
         self._observe(pf.depth, usable, pose)
 
-    def _observe(self, depth: torch.Tensor, usable: torch.Tensor, pose: torch.Tensor, stride: int = 2) -> None:
-        """Mark the keyframe's surface as observed space (every `stride`-th pixel is plenty for 6 cm voxels)."""
+    def _observe(self, depth: torch.Tensor, usable: torch.Tensor, pose: torch.Tensor) -> None:
+        self.observed.add(self._surface_points(depth, usable, pose))
+
+    def _surface_points(self, depth: torch.Tensor, usable: torch.Tensor, pose: torch.Tensor,
+                        stride: int = 2) -> torch.Tensor:
+        """A keyframe's surface points for the observed space (every `stride`-th pixel is plenty for 6 cm voxels)."""
         take = torch.zeros_like(usable)
         take[::stride, ::stride] = True
         flat = torch.nonzero((take & usable & (depth > 0)).reshape(-1)).squeeze(1)
-        points = self.dirs_cam[flat] * depth.reshape(-1)[flat, None] @ pose[:3, :3].T + pose[:3, 3]
-        self.observed.add(points)
+        return self.dirs_cam[flat] * depth.reshape(-1)[flat, None] @ pose[:3, :3].T + pose[:3, 3]
 
     def _scene_bound(self, pf: PreparedFrame, pose0: np.ndarray) -> np.ndarray:
         step = self.cfg.model.coarse_resolution
@@ -175,7 +178,8 @@ class SLAM:
             with_depth
         points = self.dirs_cam[sample] * d[sample, None] @ kf.pose[:3, :3].T + kf.pose[:3, 3]
         window = select_window(self.keyframes, current, points, self.intr, self.cfg.mapping.window, self.rng)
-        optimise_poses = len(self.keyframes) > self.cfg.mapping.joint_poses_after
+        mc = self.cfg.mapping
+        optimise_poses = mc.joint_poses and len(self.keyframes) > mc.joint_poses_after
         res = self.mapper.map(self.field, self.keyframes, window, first=False, optimise_poses=optimise_poses)
         for i, pose in res.refined.items():
             self.keyframes[i].pose = pose.float()

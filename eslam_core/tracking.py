@@ -13,10 +13,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .camera import Intrinsics
 from .config import Config
 from .field import SceneField
 from .frames import PreparedFrame, border_mask
 from .geometry import params_to_pose, pose_to_params, rays_to_world, scale_motion
+from .keyframes import Keyframe
 from .losses import eslam_losses
 from .observed import ObservedSpace
 from .rendering import render_rays
@@ -72,8 +74,10 @@ class Tracker:
         self.border = border_mask(height, width, cfg.tracking.border).reshape(-1)
 
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
-              usable: torch.Tensor | None = None, observed: ObservedSpace | None = None) -> TrackingResult:
-        """`observed` is not used: the paper's tracker renders every sampled ray, as the official code does."""
+              usable: torch.Tensor | None = None, observed: ObservedSpace | None = None,
+              keyframe: Keyframe | None = None) -> TrackingResult:
+        """`observed` and `keyframe` are not used: the paper's tracker renders every sampled ray against the map,
+        as the official code does."""
         tc = self.cfg.tracking
         valid = self.border & (frame.depth.reshape(-1) > 0)
         if usable is not None:
@@ -105,10 +109,10 @@ class Tracker:
         return TrackingResult(best_pose, best_loss, len(candidates))
 
 
-def make_tracker(cfg: Config, dirs_cam: torch.Tensor, height: int, width: int):
+def make_tracker(cfg: Config, dirs_cam: torch.Tensor, intr: Intrinsics):
     """The tracker the config asks for: the paper's rendering tracker or the fast SDF alignment."""
     if cfg.tracking.method == "sdf":
         from .sdf_tracking import SDFTracker
 
-        return SDFTracker(cfg, dirs_cam, height, width)
-    return Tracker(cfg, dirs_cam, height, width)
+        return SDFTracker(cfg, dirs_cam, intr)
+    return Tracker(cfg, dirs_cam, intr.height, intr.width)

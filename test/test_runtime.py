@@ -420,8 +420,9 @@ def test_shared_map_double_buffer():
     meta = MapMeta(tmp.get_context("spawn"))
     shared = SharedMap.create(meta, writer)
     assert shared.read_into(reader, -1) is None  # nothing published yet
-    v1 = shared.publish(writer)
+    v1 = shared.publish(writer, mapped=1)
     assert shared.read_into(reader, -1) == v1 and shared.read_into(reader, v1) is None
+    assert shared.mapped == 1
     assert all(torch.equal(a, b) for a, b in zip(writer.parameters(), reader.parameters()))
     # While a reader holds the newest buffer, the next publication goes to the other one.
     front = int(meta.state[MapMeta.FRONT])
@@ -429,11 +430,11 @@ def test_shared_map_double_buffer():
     held = shared.buffers[front].clone()
     with torch.no_grad():
         writer.geometry_planes.table.add_(1.0)
-    v2 = shared.publish(writer)
+    v2 = shared.publish(writer, mapped=2)
     assert v2 == v1 + 1 and int(meta.state[MapMeta.FRONT]) == 1 - front
     assert torch.equal(shared.buffers[front], held)  # the held version is intact
     meta.state[MapMeta.PINS + front] -= 1
-    assert shared.read_into(reader, v1) == v2
+    assert shared.read_into(reader, v1) == v2 and shared.mapped == 2
     assert torch.equal(reader.geometry_planes.table, writer.geometry_planes.table)
     other = SceneField(np.array([[0.0, 0.0, 0.0], [0.48, 0.48, 0.48]]), cfg.model)
     with pytest.raises(RuntimeError, match="different maps"):

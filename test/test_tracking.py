@@ -91,7 +91,7 @@ def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_we
     start = gt.copy()
     start[:3, :3] = axis_angle([-0.5, 1.0, 0.4], 3.0) @ gt[:3, :3]
     start[:3, 3] += np.array([-0.015, 0.02, 0.015])
-    result = SDFTracker(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width).track(
+    result = SDFTracker(cfg, dirs, ds.intrinsics).track(
         field, frame, torch.from_numpy(start).float())
     est = result.pose.double().numpy()
     assert np.linalg.norm(est[:3, 3] - gt[:3, 3]) < 0.01

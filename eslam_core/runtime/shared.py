@@ -144,11 +144,11 @@ class FrameRing:
 class MapMeta:
     """The part of the shared map that exists before the map does (created by the parent, inherited at spawn)."""
 
-    VERSION, FRONT, PINS = 0, 1, 2  # PINS, PINS + 1: readers holding buffer 0 / 1
+    VERSION, FRONT, PINS, MAPPED = 0, 1, 2, 4  # PINS, PINS + 1: readers holding buffer 0 / 1
 
     def __init__(self, ctx):
         self.lock = ctx.Lock()
-        self.state = torch.tensor([0, -1, 0, 0], dtype=torch.int64).share_memory_()
+        self.state = torch.tensor([0, -1, 0, 0, 0], dtype=torch.int64).share_memory_()
 
     @property
     def version(self) -> int:
@@ -171,6 +171,7 @@ class SharedMap:
         self.buffers = buffers  # (2, P) float32 in shared memory
         self.publish_seconds = 0.0
         self.read_seconds = 0.0
+        self.mapped = 0  # of the map last read: how many keyframes (the first ones) it has been fitted to
 
     @staticmethod
     def create(meta: MapMeta, field: nn.Module) -> "SharedMap":
@@ -186,8 +187,9 @@ class SharedMap:
             raise SharedMemoryError(f"the shared map holds {self.buffers.shape[1]} values but the field has {size}: "
                                     f"tracker and mapper built different maps (same config and bound expected)")
 
-    def publish(self, field: nn.Module) -> int:
-        """Make the field's current parameters the newest map; returns the new version."""
+    def publish(self, field: nn.Module, mapped: int) -> int:
+        """Make the field's current parameters the newest map, fitted to the first `mapped` keyframes; returns the
+        new version."""
         start = time.perf_counter()
         layout = parameter_layout(field)
         self._check(layout)
@@ -204,6 +206,7 @@ class SharedMap:
                 buffer[offset: offset + n].copy_(p.detach().reshape(-1))
         with self.meta.lock:
             self.meta.state[MapMeta.FRONT] = back
+            self.meta.state[MapMeta.MAPPED] = mapped
             self.meta.state[MapMeta.VERSION] += 1
             version = int(self.meta.state[MapMeta.VERSION])
         self.publish_seconds = time.perf_counter() - start
@@ -218,6 +221,7 @@ class SharedMap:
             version = int(self.meta.state[MapMeta.VERSION])
             if front < 0 or version == have_version:
                 return None
+            self.mapped = int(self.meta.state[MapMeta.MAPPED])
             self.meta.state[MapMeta.PINS + front] += 1
         try:
             layout = parameter_layout(field)

@@ -323,6 +323,19 @@ class PipelinedTracking(SLAM):
     def __init__(self, cfg: Config, intrinsics: Intrinsics):
         super().__init__(cfg, intrinsics)
         self.handed_over: list[int] = []
+        self.unmapped: deque = deque()  # surface points of the keyframes the shared map is not fitted to yet
+        self.observed_keyframes = 0
+
+    def _observe(self, depth: torch.Tensor, usable: torch.Tensor, pose: torch.Tensor) -> None:
+        # Space counts as observed only once the map has been fitted to it: until then the SDF there is whatever
+        # the map held before, and tracking against it would pull the pose (see `observe_mapped`).
+        self.unmapped.append(self._surface_points(depth, usable, pose))
+
+    def observe_mapped(self, mapped: int) -> None:
+        """The shared map now covers the first `mapped` keyframes."""
+        while self.observed_keyframes < mapped and self.unmapped:
+            self.observed.add(self.unmapped.popleft())
+            self.observed_keyframes += 1
 
     def _first_frame(self, pf: PreparedFrame) -> StepResult:
         pose0 = self._start_map(pf)
@@ -415,6 +428,7 @@ class TrackerWorker:
     def _refresh_map(self) -> None:
         version = self.map.read_into(self.state.field, self.map_version)
         if version is not None:
+            self.state.observe_mapped(self.map.mapped)
             log.debug("tracker: map version %d (%.1f ms to copy in)", version, 1000 * self.map.read_seconds)
             self.map_version = version
             self.ch.board.add(Counter.READ_SECONDS, self.map.read_seconds)
@@ -447,13 +461,17 @@ class TrackerWorker:
         board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
 
     def _hand_over(self, position: int) -> None:
-        """Send a new keyframe to the mapper and keep only its pose here (the images live in the mapper)."""
+        """Send a new keyframe to the mapper; keep only the poses of the older ones here."""
         kf = self.state.keyframes[position]
         bound = self.state.bound.copy() if position == 0 else None
         self.ch.to_mapper.put(KeyframeMessage(self.epoch, position, kf.frame_index, kf.timestamp, kf.rgb.numpy(),
                                               kf.depth.numpy(), kf.usable.numpy(), kf.pose.numpy(), bound))
-        self.state.keyframes[position] = dataclasses.replace(kf, rgb=EMPTY_IMAGE, depth=EMPTY_IMAGE,
-                                                             usable=EMPTY_IMAGE)
+        # The images live in the mapper; the newest keyframe's stay here too, for the photometric term of the
+        # SDF tracker, until the next keyframe replaces it.
+        if position > 0:
+            older = self.state.keyframes[position - 1]
+            self.state.keyframes[position - 1] = dataclasses.replace(older, rgb=EMPTY_IMAGE, depth=EMPTY_IMAGE,
+                                                                     usable=EMPTY_IMAGE)
         self.ch.board.add(Counter.KEYFRAMES)
 
     def _finish(self) -> None:
@@ -614,8 +632,10 @@ class MapperWorker:
         finally:
             self.publishing_mid_step = False
 
-    def _publish(self) -> int:
-        version = self.map.publish(self.slam.field)
+    def _publish(self, step_done: bool = True) -> int:
+        # In the middle of a step the newest keyframe is not fitted yet.
+        mapped = len(self.slam.keyframes) - (0 if step_done else 1)
+        version = self.map.publish(self.slam.field, mapped)
         self.ch.board.add(Counter.PUBLISH_SECONDS, self.map.publish_seconds)
         self.ch.board.add(Counter.PUBLISHES)
         return version
@@ -628,7 +648,7 @@ class MapperWorker:
         self.cores.update()
         self.iterations += 1
         if self.publishing_mid_step and self.iterations % self.setup.publish_every == 0:
-            self._publish()
+            self._publish(step_done=False)
         self._serve_requests()
 
     # ---------------------------------------------------------------------------------------------- snapshots

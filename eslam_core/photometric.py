@@ -1,0 +1,100 @@
+"""Photometric alignment to a reference keyframe, for the fast SDF tracker (not part of the paper's method).
+
+The SDF residuals of back-projected depth leave the pose free along directions in which the visible surfaces slide
+along themselves (a wall and a floor fix only three or four of the six degrees of freedom), and the map's colour is
+too blurred to hold it there. The sensor's own images are sharp: the last keyframe (its colour, depth and pose) is
+the reference, and a point x of the current frame should have the grey level of the reference pixel it projects to,
+I_r(pi(R_r^T (x - t_r))) = I_c(u). Both images are turned into a pyramid (2x2 averages) so that the first
+iterations see a blurred image whose basin covers the error of the constant-velocity prediction; the gradients are
+central differences, given in full-resolution pixel units at every level so that the Jacobian is level-independent.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from .camera import Intrinsics
+
+GREY = torch.tensor([0.299, 0.587, 0.114])
+
+
+def grey_pyramid(rgb: torch.Tensor, levels: int) -> list[torch.Tensor]:
+    """(H, W, 3) colour in [0, 1] -> grey images, full resolution first, each next one half the size."""
+    grey = (rgb @ GREY)[None, None]
+    pyramid = [grey]
+    for _ in range(levels - 1):
+        if min(grey.shape[-2:]) < 8:
+            break
+        grey = F.avg_pool2d(grey, 2)
+        pyramid.append(grey)
+    return [g[0, 0] for g in pyramid]
+
+
+def with_gradients(grey: torch.Tensor, scale: float) -> torch.Tensor:
+    """(h, w) grey at 1/scale resolution -> (1, 3, h, w): grey, dI/du, dI/dv per full-resolution pixel."""
+    padded = F.pad(grey[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+    du = (padded[1:-1, 2:] - padded[1:-1, :-2]) / (2.0 * scale)
+    dv = (padded[2:, 1:-1] - padded[:-2, 1:-1]) / (2.0 * scale)
+    return torch.stack([grey, du, dv])[None]
+
+
+def sample(image: torch.Tensor, u: torch.Tensor, v: torch.Tensor, scale: float) -> torch.Tensor:
+    """Bilinear samples (N, C) of a (1, C, h, w) level at full-resolution pixel coordinates (u, v)."""
+    h, w = image.shape[-2:]
+    # Pixel centres: full-resolution pixel u covers level coordinates around (u + 0.5) / scale - 0.5.
+    gu = ((u + 0.5) / scale - 0.5) / max(w - 1, 1) * 2.0 - 1.0
+    gv = ((v + 0.5) / scale - 0.5) / max(h - 1, 1) * 2.0 - 1.0
+    grid = torch.stack([gu, gv], -1)[None, None]
+    return F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)[0, :, 0].T
+
+
+@dataclass
+class Reference:
+    """A keyframe prepared for alignment: levels of (grey, gradients) and its depth and pose."""
+
+    frame_index: int
+    levels: list[torch.Tensor]  # (1, 3, h, w) per level, full resolution first
+    depth: torch.Tensor  # (H, W) metres
+    pose: torch.Tensor  # (4, 4) camera-to-world
+
+    @staticmethod
+    def build(frame_index: int, rgb: torch.Tensor, depth: torch.Tensor, pose: torch.Tensor,
+              levels: int) -> "Reference":
+        pyramid = grey_pyramid(rgb, levels)
+        return Reference(frame_index, [with_gradients(g, 2.0**i) for i, g in enumerate(pyramid)], depth,
+                         pose.double())
+
+
+def project(points_world: torch.Tensor, pose: torch.Tensor, intr: Intrinsics
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """World points (N, 3) -> camera points of the camera `pose` (c2w) and their pixel coordinates u, v."""
+    p = (points_world - pose[:3, 3]) @ pose[:3, :3]  # R^T (x - t) for row vectors
+    z = p[:, 2].clamp_min(1e-6)
+    return p, intr.fx * p[:, 0] / z + intr.cx, intr.fy * p[:, 1] / z + intr.cy
+
+
+def photometric_residuals(x: torch.Tensor, grey_current: torch.Tensor, ref: Reference, level: int,
+                          intr: Intrinsics, occlusion: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Residuals I_r(pi(x)) - I_c (N,), their gradients in the world point x (N, 3) and which are valid (N,).
+
+    A point is valid when it lands inside the reference image in front of the camera and the reference saw the
+    same surface there: its depth agrees with the reference depth to within `occlusion` metres.
+    """
+    pose = ref.pose.to(x.dtype)
+    p, u, v = project(x, pose, intr)
+    z = p[:, 2]
+    valid = (z > 0.05) & (u >= 1) & (u <= intr.width - 2) & (v >= 1) & (v <= intr.height - 2)
+    ui = u.round().long().clamp(0, intr.width - 1)
+    vi = v.round().long().clamp(0, intr.height - 1)
+    d_ref = ref.depth[vi, ui].to(x.dtype)
+    valid &= (d_ref > 0) & ((d_ref - z).abs() < occlusion)
+    scale = 2.0**level
+    s = sample(ref.levels[level], u.float(), v.float(), scale).to(x.dtype)
+    residual = s[:, 0] - grey_current
+    iu, iv = s[:, 1], s[:, 2]
+    zc = z.clamp_min(1e-6)
+    grad_cam = torch.stack([iu * intr.fx / zc, iv * intr.fy / zc,
+                            -(iu * intr.fx * p[:, 0] + iv * intr.fy * p[:, 1]) / zc**2], -1)
+    return residual, grad_cam @ pose[:3, :3].T, valid
