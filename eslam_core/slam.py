@@ -94,6 +94,10 @@ class SLAM:
         usable = self._usable_pixels(pf, init)
         result = self.tracker.track(self.field, pf, init, usable, self.observed, self.keyframes[-1])
         pose = result.pose
+        if not torch.isfinite(pose).all():  # a diverged optimisation must not poison the trajectory and the map
+            log.warning("frame %d: tracking diverged (non-finite pose); keeping the motion model's prediction",
+                        pf.index)
+            pose = init
         is_keyframe = n % self.cfg.mapping.every == 0
         mapping_loss = float("nan")
         if is_keyframe:

@@ -466,3 +466,19 @@ def test_trajectory_mirror_applies_refinements_in_any_order():
     timestamps, poses = mirror.trajectory()
     assert np.allclose(timestamps, [0.0, 0.1, 0.2]) and mirror.keyframes == 2
     assert np.allclose(poses[:, 0, 3], [2.0, 2.5, 3.0])
+
+
+def test_pipelined_tracker_observes_only_what_the_map_is_fitted_to(room_sequence):
+    """Space of a keyframe the mapper has not mapped yet is not observed: its SDF is still the old map's."""
+    state = workers.PipelinedTracking(fast_cfg(tracking={"method": "sdf"}), room_sequence.intrinsics)
+    for i in range(5):  # keyframes 0 and 4; no map is ever published here, so tracking keeps the prediction
+        state.step(room_sequence[i])
+    assert state.handed_over == [0, 1] and len(state.unmapped) == 2
+    assert not state.observed.seen.any()
+    state.observe_mapped(1)
+    first = int(state.observed.seen.sum())
+    assert first > 0 and len(state.unmapped) == 1
+    state.observe_mapped(1)  # a newer version of the same map: nothing new
+    assert int(state.observed.seen.sum()) == first
+    state.observe_mapped(2)
+    assert int(state.observed.seen.sum()) > first and not state.unmapped

@@ -97,3 +97,47 @@ def test_checkpoint_restores_observed_space(run):
     seen_point = slam.dirs_cam[v * d.shape[1] + u] * d[v, u] @ kf.pose[:3, :3].T + kf.pose[:3, 3]
     camera_centre = kf.pose[:3, 3]  # the camera sits in free space, away from every surface
     assert slam.observed.contains(torch.stack([seen_point, camera_centre])).tolist() == [True, False]
+
+
+@pytest.mark.parametrize("joint_poses", [True, False])
+def test_joint_pose_switch(room_sequence, joint_poses):
+    """mapping.joint_poses: False keeps the tracked keyframe poses as they are; True lets mapping refine them."""
+    from eslam_core.slam import SLAM
+
+    cfg = load_config("demo", {"mapping": {"first_iterations": 20, "iterations": 5, "joint_poses_after": 0,
+                                           "joint_poses": joint_poses},
+                               "tracking": {"iterations": 3}})
+    slam = SLAM(cfg, room_sequence.intrinsics)
+    tracked = {}  # frame -> the pose tracking gave it, before mapping
+    track = slam.tracker.track
+    slam.tracker.track = lambda field, frame, *args, **kw: tracked.setdefault(frame.index, track(field, frame, *args,
+                                                                                                   **kw))
+    for i in range(9):
+        slam.step(room_sequence[i])
+    moved = [not torch.equal(kf.pose, tracked[kf.frame_index].pose) for kf in slam.keyframes[1:]]
+    assert [kf.frame_index for kf in slam.keyframes] == [0, 4, 8]
+    assert any(moved) == joint_poses
+
+
+def test_diverged_tracking_keeps_the_prediction(room_sequence, caplog):
+    """A tracker that returns a non-finite pose must not end the run with an unwritable trajectory."""
+    from eslam_core.slam import SLAM
+    from eslam_core.tracking import TrackingResult
+
+    cfg = load_config("demo", {"mapping": {"first_iterations": 10, "iterations": 2}, "tracking": {"iterations": 2}})
+    slam = SLAM(cfg, room_sequence.intrinsics)
+    track = slam.tracker.track
+
+    def diverging(field, frame, init, *args, **kw):
+        if frame.index == 2:
+            return TrackingResult(torch.full((4, 4), float("nan")), float("nan"), 0)
+        return track(field, frame, init, *args, **kw)
+
+    slam.tracker.track = diverging
+    for i in range(4):
+        slam.step(room_sequence[i])
+    poses = slam.poses()
+    assert np.isfinite(poses).all()
+    step = np.linalg.inv(poses[0]) @ poses[1]
+    assert np.allclose(poses[2], poses[1] @ step, atol=1e-5)  # constant velocity from frames 0 and 1
+    assert "tracking diverged" in caplog.text

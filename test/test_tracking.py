@@ -76,9 +76,10 @@ def test_outlier_mask_drops_large_depth_errors():
     assert outlier_mask(err, 10.0).tolist() == [True, True, True, True, False]
 
 
-@pytest.mark.parametrize("color_weight", [0.0, 1.0])
-def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_weight):
-    """The fast Gauss-Newton alignment (depth only, and depth with colour) converges from 3 cm / 3 degrees too."""
+@pytest.mark.parametrize("color_weight,with_keyframe", [(0.0, False), (1.0, False), (0.0, True), (1.0, True)])
+def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_weight, with_keyframe):
+    """The fast Gauss-Newton alignment (depth only, with the map's colour, with the keyframe's images) converges
+    from 3 cm / 3 degrees too."""
     from eslam_core.sdf_tracking import SDFTracker
 
     cfg, field, dirs = fitted_map
@@ -86,13 +87,19 @@ def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_we
     cfg.tracking.rays = 3000
     cfg.tracking.color_weight = color_weight
     ds = room_sequence
+    keyframe = None
+    if with_keyframe:
+        f6 = prepare_frame(ds[6], ds.intrinsics, cfg.camera)
+        keyframe = Keyframe.from_tensors(6, f6.timestamp, f6.rgb, f6.depth, f6.depth >= 0,
+                                         torch.from_numpy(f6.gt_pose).float())
     frame = prepare_frame(ds[9], ds.intrinsics, cfg.camera)
     gt = frame.gt_pose
     start = gt.copy()
     start[:3, :3] = axis_angle([-0.5, 1.0, 0.4], 3.0) @ gt[:3, :3]
     start[:3, 3] += np.array([-0.015, 0.02, 0.015])
-    result = SDFTracker(cfg, dirs, ds.intrinsics).track(
-        field, frame, torch.from_numpy(start).float())
+    tracker = SDFTracker(cfg, dirs, ds.intrinsics)
+    result = tracker.track(field, frame, torch.from_numpy(start).float(), keyframe=keyframe)
+    assert (tracker._reference is not None) == with_keyframe
     est = result.pose.double().numpy()
     assert np.linalg.norm(est[:3, 3] - gt[:3, 3]) < 0.01
     assert rotation_angle_deg(est[:3, :3].T @ gt[:3, :3]) < 0.5
