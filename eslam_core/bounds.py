@@ -6,6 +6,7 @@ centre, plus a margin). Each axis is grown to a whole number of coarse cells so 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from .camera import Intrinsics, backproject
 
@@ -30,5 +31,7 @@ def estimate_bound(depth: np.ndarray, intr: Intrinsics, pose: np.ndarray, margin
     return grow_to_multiple(np.stack([lo - margin, hi + margin]), step)
 
 
-def outside_mask(points: np.ndarray, bound: np.ndarray) -> np.ndarray:
-    return np.any((points < bound[0]) | (points > bound[1]), axis=-1)
+def outside_mask(points: torch.Tensor, bound: np.ndarray) -> torch.Tensor:
+    """(N,) bool: the point lies outside the axis-aligned bound (2, 3)."""
+    lo, hi = (torch.as_tensor(b, dtype=points.dtype) for b in bound)
+    return ((points < lo) | (points > hi)).any(-1)

@@ -161,7 +161,7 @@ class SLAM:
         """Pixels whose measured surface lies inside the bound; the others are left out and counted."""
         depth = pf.depth.reshape(-1)
         points = self.dirs_cam * depth[:, None] @ pose[:3, :3].T + pose[:3, 3]
-        outside = torch.from_numpy(outside_mask(points.numpy(), self.bound)) & (depth > 0)
+        outside = outside_mask(points, self.bound) & (depth > 0)
         n_out, n_valid = int(outside.sum()), int((depth > 0).sum())
         self.points_outside += n_out
         self.points_seen += n_valid

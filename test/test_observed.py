@@ -29,3 +29,16 @@ def test_adding_more_surface_grows_observed_space():
     assert space.contains(probe).item()
     space.add(torch.tensor([[2.0, 2.0, 2.0], [-1.0, 0.5, 0.5]]))  # outside the bound: ignored, no error
     assert int(space.seen.sum()) == 1
+
+
+def test_growing_by_one_voxel_equals_a_3x3x3_max_pool():
+    import torch.nn.functional as F
+
+    from eslam_core.observed import grow_by_one_voxel
+
+    g = torch.Generator().manual_seed(0)
+    grid = torch.rand(17, 9, 12, generator=g) > 0.97
+    grid[0, 0, 0] = grid[-1, -1, -1] = True  # corners: the growth must stop at the edges
+    expected = F.max_pool3d(grid[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+    assert torch.equal(grow_by_one_voxel(grid), expected)
+    assert grid.sum() < expected.sum() < grid.numel()

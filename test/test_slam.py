@@ -141,3 +141,22 @@ def test_diverged_tracking_keeps_the_prediction(room_sequence, caplog):
     step = np.linalg.inv(poses[0]) @ poses[1]
     assert np.allclose(poses[2], poses[1] @ step, atol=1e-5)  # constant velocity from frames 0 and 1
     assert "tracking diverged" in caplog.text
+
+
+def test_depth_outside_the_bound_is_counted_and_not_used(room_sequence):
+    from eslam_core.slam import SLAM
+
+    bound = [[-2.1, -1.6, -0.1], [0.3, 1.6, 2.7]]  # cuts the room at x = 0.3 m (before growing to the grid)
+    cfg = load_config("demo", {"scene": {"bound": bound}, "mapping": {"first_iterations": 1}})
+    slam = SLAM(cfg, room_sequence.intrinsics)
+    slam.step(room_sequence[0])
+    kf = slam.keyframes[0]
+    d = kf.depth_image()
+    points = (slam.dirs_cam * d.reshape(-1, 1)) @ kf.pose[:3, :3].T + kf.pose[:3, 3]
+    x_max = slam.bound[1][0]
+    beyond = (points[:, 0] > x_max + 0.01) & (d.reshape(-1) > 0)
+    inside = (points[:, 0] < x_max - 0.01) & (d.reshape(-1) > 0)
+    assert beyond.sum() > 100 and inside.sum() > 100
+    usable = kf.usable.reshape(-1)
+    assert not usable[beyond].any() and usable[inside].all()
+    assert slam.points_outside >= int(beyond.sum())
