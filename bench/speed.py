@@ -125,11 +125,10 @@ def iteration_benchmark(cfg, ds, repeats: int, native: bool) -> dict:
     optim = torch.optim.Adam(groups, fused=True)  # as in mapping.py
     mapping = []
     per = cfg.mapping.rays // len(kfs)
-    candidates = [mapper._candidates(kf) for kf in kfs]
     for _ in range(repeats + 1):
         o, d, dg, cg = [], [], [], []
-        for kf, cand in zip(kfs, candidates):
-            pix = mapper._draw(cand, per)
+        for kf in kfs:
+            pix = mapper._pixels(kf, per)
             d.append(dirs_cam[pix] @ kf.pose[:3, :3].T)
             o.append(kf.pose[:3, 3].expand(len(pix), 3))
             dg.append(kf.depths(pix))

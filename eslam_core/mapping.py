@@ -31,11 +31,16 @@ class Mapper:
         self.dirs_cam = dirs_cam
         self.border = border_mask(height, width, cfg.mapping.border).reshape(-1)
 
-    def _candidates(self, kf: Keyframe) -> torch.Tensor:
-        return torch.nonzero(self.border & kf.usable.reshape(-1)).squeeze(1)
-
-    @staticmethod
-    def _draw(candidates: torch.Tensor, n: int) -> torch.Tensor:
+    def _pixels(self, kf: Keyframe, n: int) -> torch.Tensor:
+        """n pixels drawn uniformly (with replacement) from the keyframe's usable ones. Usually most pixels are
+        usable, so rejection sampling finds them without a pass over the whole image."""
+        usable = kf.usable.reshape(-1)
+        for _ in range(3):
+            draw = torch.randint(len(usable), (2 * n,))
+            draw = draw[self.border[draw] & usable[draw]]
+            if len(draw) >= n:
+                return draw[:n]
+        candidates = torch.nonzero(self.border & usable).squeeze(1)
         if len(candidates) == 0:
             return candidates
         return candidates[torch.randint(len(candidates), (n,))]
@@ -55,13 +60,12 @@ class Mapper:
         # The fused kernel does the whole update in one pass over the millions of plane values (~8x faster on CPU).
         optim = torch.optim.Adam(groups, betas=(0.9, 0.999), fused=True)
         per_frame = max(1, mc.rays // len(window))
-        candidates = {i: self._candidates(keyframes[i]) for i in window}
         loss_value = float("nan")
         for _ in range(iterations):
             origins, dirs, d_gt, rgb_gt = [], [], [], []
             for i in window:
                 kf = keyframes[i]
-                pix = self._draw(candidates[i], per_frame)
+                pix = self._pixels(kf, per_frame)
                 if len(pix) == 0:
                     continue
                 c2w = params_to_pose(*pose_params[i]) if i in pose_params else kf.pose

@@ -160,3 +160,24 @@ def test_depth_outside_the_bound_is_counted_and_not_used(room_sequence):
     usable = kf.usable.reshape(-1)
     assert not usable[beyond].any() and usable[inside].all()
     assert slam.points_outside >= int(beyond.sum())
+
+
+@pytest.mark.parametrize("usable_fraction", [0.9, 0.001])
+def test_mapping_draws_only_usable_pixels(usable_fraction):
+    """Rejection sampling for the usual mostly-usable keyframe, a full pass for a sparse one: same answer."""
+    from eslam_core.frames import pixel_directions_table
+    from eslam_core.camera import Intrinsics
+    from eslam_core.mapping import Mapper
+
+    cfg = load_config("demo", {"mapping": {"border": 5}})
+    intr = Intrinsics(width=80, height=60, fx=70.0, fy=70.0, cx=39.5, cy=29.5)
+    g = torch.Generator().manual_seed(1)
+    usable = torch.rand(60, 80, generator=g) < usable_fraction
+    kf = Keyframe.from_tensors(0, 0.0, torch.rand(60, 80, 3), torch.full((60, 80), 2.0), usable, torch.eye(4))
+    mapper = Mapper(cfg, pixel_directions_table(intr), 60, 80)
+    pix = mapper._pixels(kf, 500)
+    v, u = pix // 80, pix % 80
+    assert len(pix) == 500
+    assert usable.reshape(-1)[pix].all()
+    assert ((u >= 5) & (u < 75) & (v >= 5) & (v < 55)).all()
+    assert len(torch.unique(pix)) > min(200, int(usable[5:55, 5:75].sum()) - 1)
