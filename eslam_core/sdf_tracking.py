@@ -1,19 +1,24 @@
-"""Fast tracking: Gauss-Newton alignment of the frame's back-projected depth to the map's SDF and colour.
+"""Fast tracking: Gauss-Newton alignment of the frame's back-projected depth to the map's SDF and to the images.
 
 An alternative to the paper's tracker for live use on a CPU (`tracking.method: sdf`, the `fast` preset). Each pixel
-with depth gives a point p in the camera and the world point x = R p + t. Two residuals per point, each divided by
-its robust scale so that both are unitless:
+with depth gives a point p in the camera and the world point x = R p + t. Residuals per point, each divided by its
+robust scale so that all are unitless:
 - geometric: the map's signed distance at x, T * phi_g(x) / huber (metres / metres);
-- photometric: the map's colour at x against the pixel's, as grey levels, (g(phi_a(x)) - g(I(u))) / color_huber.
-  Without it the SDF alone leaves directions in which the visible surfaces slide along themselves (a corridor, a
-  ceiling seen at a grazing angle) and the constant-velocity prediction's error survives, frame after frame.
-Both are queries of the map at x, so with a left perturbation x -> x + w x x + v the Jacobian row of a residual with
-spatial gradient g is [g, x cross g]. Damped Gauss-Newton steps with Huber weights solve for (v, w). One SDF and
-one colour query (with gradients) per point and iteration instead of rendering ~40 samples per ray.
+- map colour (`color_weight`): the map's colour at x against the pixel's, as grey levels, (g(phi_a(x)) - g(I(u))) /
+  color_huber;
+- keyframe photometric (`photometric_weight`): the newest keyframe's grey level where x projects into it against
+  the pixel's, aligned coarse to fine over an image pyramid (photometric.py).
+The SDF alone leaves directions in which the visible surfaces slide along themselves (a corridor, a ceiling seen at
+a grazing angle) and the constant-velocity prediction's error survives, frame after frame; the colour terms hold
+them, the keyframe's sharp images better than the map's blurred colour. All residuals are functions of x, so with a
+left perturbation x -> x + w x x + v the Jacobian row of a residual with spatial gradient g is [g, x cross g].
+Damped Gauss-Newton steps with Huber weights solve for (v, w): one SDF query (with gradients) per point and
+iteration instead of rendering ~40 samples per ray.
 
-Only points inside the truncation band (where the SDF has a gradient and the colour is the surface's) give residuals.
-The cost that picks the best pose counts every point, a saturated one at the largest penalty; otherwise a pose that
-pushed points out of the band would look good. Points on space no keyframe has seen are left out (see observed.py).
+Only points inside the truncation band (where the SDF has a gradient and the colour is the surface's) give map
+residuals. The cost that picks the best pose counts every point, a saturated one at the largest penalty; otherwise a
+pose that pushed points out of the band (or out of the keyframe's view) would look good. Points on space no mapped
+keyframe has seen are left out (see observed.py).
 """
 from __future__ import annotations
 
@@ -27,7 +32,8 @@ from .keyframes import Keyframe
 from .observed import ObservedSpace
 from .photometric import GREY, Reference, grey_pyramid, photometric_residuals, sample
 from .tracking import TrackingResult, frozen
-SATURATED_COLOR = 3.0  # the photometric penalty of a saturated point, in units of color_huber
+
+SATURATED_COLOR = 3.0  # the colour penalty of a saturated point, in units of its Huber scale
 
 
 def so3_exp(w: torch.Tensor) -> torch.Tensor:

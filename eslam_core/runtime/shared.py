@@ -144,7 +144,8 @@ class FrameRing:
 class MapMeta:
     """The part of the shared map that exists before the map does (created by the parent, inherited at spawn)."""
 
-    VERSION, FRONT, PINS, MAPPED = 0, 1, 2, 4  # PINS, PINS + 1: readers holding buffer 0 / 1
+    # PINS, PINS + 1: readers holding buffer 0 / 1; MAPPED: how many keyframes the newest map is fitted to.
+    VERSION, FRONT, PINS, MAPPED = 0, 1, 2, 4
 
     def __init__(self, ctx):
         self.lock = ctx.Lock()
