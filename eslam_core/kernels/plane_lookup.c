@@ -74,35 +74,45 @@ void plane_forward(const float *points, int64_t N, const float *table, int64_t C
     }
 }
 
-/* grad_points (N, 3) or NULL: accumulated (+=). */
+/* grad_points (N, 3): accumulated (+=).
+ * d feature / d point along axis x = dg[x] * sum over the corners of the planes spanning x of dw_x * row, so each
+ * axis gets one channel vector (vector FMAs) and one dot product with grad_out, instead of one horizontal reduction
+ * per corner. */
 void plane_backward_points(const float *points, int64_t N, const float *table, int64_t C, int64_t S,
                            const int64_t *sizes, const int64_t *offsets, const float *bmin, const float *ext,
                            const float *grad_out, float *grad_points, int threads) {
-    #pragma omp parallel for schedule(static) num_threads(threads)
-    for (int64_t i = 0; i < N; ++i) {
-        float gp[3] = {0.f, 0.f, 0.f};
-        for (int64_t s = 0; s < S; ++s) {
-            int64_t base[3]; float frac[3], dg[3]; Corners c;
-            grid_coords(points + 3 * i, bmin, ext, sizes + 3 * s, base, frac, dg);
-            plane_corners(base, frac, sizes + 3 * s, offsets + 3 * s, &c);
-            const float *go = grad_out + (i * S + s) * C;
-            for (int k = 0; k < 3; ++k) {
-                float ga = 0.f, gb = 0.f;
-                for (int q = 0; q < 4; ++q) {
-                    int j = 4 * k + q;
-                    const float *r = table + c.rows[j] * C;
-                    float dot = 0.f;
-                    /* Without this the compiler keeps the float sum in order, i.e. scalar: 4x slower. */
-                    #pragma omp simd reduction(+:dot)
-                    for (int64_t ch = 0; ch < C; ++ch) dot += go[ch] * r[ch];
-                    ga += dot * c.dw_da[j];
-                    gb += dot * c.dw_db[j];
+    #pragma omp parallel num_threads(threads)
+    {
+        float acc[3 * C];
+        #pragma omp for schedule(static)
+        for (int64_t i = 0; i < N; ++i) {
+            float gp[3] = {0.f, 0.f, 0.f};
+            for (int64_t s = 0; s < S; ++s) {
+                int64_t base[3]; float frac[3], dg[3]; Corners c;
+                grid_coords(points + 3 * i, bmin, ext, sizes + 3 * s, base, frac, dg);
+                plane_corners(base, frac, sizes + 3 * s, offsets + 3 * s, &c);
+                for (int64_t ch = 0; ch < 3 * C; ++ch) acc[ch] = 0.f;
+                for (int k = 0; k < 3; ++k) {
+                    float *va = acc + AXIS_A[k] * C, *vb = acc + AXIS_B[k] * C;
+                    for (int q = 0; q < 4; ++q) {
+                        int j = 4 * k + q;
+                        const float *r = table + c.rows[j] * C;
+                        const float da = c.dw_da[j], db = c.dw_db[j];
+                        #pragma omp simd
+                        for (int64_t ch = 0; ch < C; ++ch) { va[ch] += da * r[ch]; vb[ch] += db * r[ch]; }
+                    }
                 }
-                gp[AXIS_A[k]] += ga * dg[AXIS_A[k]];
-                gp[AXIS_B[k]] += gb * dg[AXIS_B[k]];
+                const float *go = grad_out + (i * S + s) * C;
+                for (int ax = 0; ax < 3; ++ax) {
+                    const float *v = acc + ax * C;
+                    float dot = 0.f;
+                    #pragma omp simd reduction(+:dot)
+                    for (int64_t ch = 0; ch < C; ++ch) dot += go[ch] * v[ch];
+                    gp[ax] += dot * dg[ax];
+                }
             }
+            grad_points[3 * i] += gp[0]; grad_points[3 * i + 1] += gp[1]; grad_points[3 * i + 2] += gp[2];
         }
-        grad_points[3 * i] += gp[0]; grad_points[3 * i + 1] += gp[1]; grad_points[3 * i + 2] += gp[2];
     }
 }
 
