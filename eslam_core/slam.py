@@ -8,6 +8,7 @@ moves the frames that depend on it too.
 from __future__ import annotations
 
 import logging
+from collections import deque
 from dataclasses import dataclass
 from typing import Optional
 
@@ -59,6 +60,8 @@ class SLAM:
         self.field: Optional[SceneField] = None
         self.bound: Optional[np.ndarray] = None
         self.observed: Optional[ObservedSpace] = None
+        self.unobserved: deque = deque()  # surface points of the keyframes not in observed space yet, oldest first
+        self.observed_keyframes = 0
         self.keyframes: list[Keyframe] = []
         self.records: list[FrameRecord] = []
         self.points_outside = 0
@@ -117,6 +120,7 @@ class SLAM:
         """Start the map from the first frame and map it alone (the warm-up)."""
         pose0 = self._start_map(pf)
         res = self.mapper.map(self.field, self.keyframes, [0], first=True)
+        self.observe_mapped(1)
         return StepResult(pf.index, pose0, 0.0, True, res.loss)
 
     def _start_map(self, pf: PreparedFrame) -> np.ndarray:
@@ -135,10 +139,16 @@ class SLAM:
 
     def _add_keyframe(self, pf: PreparedFrame, usable: torch.Tensor, pose: torch.Tensor) -> None:
         self.keyframes.append(Keyframe.from_tensors(pf.index, pf.timestamp, pf.rgb, pf.depth, usable, pose))
-        self._observe(pf.depth, usable, pose)
+        self.unobserved.append(self._surface_points(pf.depth, usable, pose))
 
-    def _observe(self, depth: torch.Tensor, usable: torch.Tensor, pose: torch.Tensor) -> None:
-        self.observed.add(self._surface_points(depth, usable, pose))
+    def observe_mapped(self, mapped: int) -> None:
+        """The map is now fitted to the first `mapped` keyframes: their surface joins observed space, except the
+        newest one's. Its single mapping step shares the rays with the whole window and leaves space seen for the
+        first time rough; it joins after the next step. The first keyframe joins after its warm-up."""
+        trusted = min(mapped, max(1, mapped - 1))
+        while self.observed_keyframes < trusted and self.unobserved:
+            self.observed.add(self.unobserved.popleft())
+            self.observed_keyframes += 1
 
     def _surface_points(self, depth: torch.Tensor, usable: torch.Tensor, pose: torch.Tensor,
                         stride: int = 2) -> torch.Tensor:
@@ -187,6 +197,7 @@ class SLAM:
         res = self.mapper.map(self.field, self.keyframes, window, first=False, optimise_poses=optimise_poses)
         for i, pose in res.refined.items():
             self.keyframes[i].pose = pose.float()
+        self.observe_mapped(len(self.keyframes))
         return res.loss
 
     # ------------------------------------------------------------------------------------------------ checkpoint
@@ -220,8 +231,10 @@ class SLAM:
             slam.observed = ObservedSpace(slam.bound, slam.cfg.model.truncation)
         slam.keyframes = [Keyframe(**kf) for kf in state["keyframes"]]
         for kf in slam.keyframes:
-            if kf.depth.numel():
-                slam._observe(kf.depth_image(), kf.usable, kf.pose)
+            slam.unobserved.append(slam._surface_points(kf.depth_image(), kf.usable, kf.pose) if kf.depth.numel()
+                                   else torch.zeros(0, 3))
+        if slam.observed is not None:
+            slam.observe_mapped(len(slam.keyframes))
         slam.records = [FrameRecord(**dict(r, relative=r["relative"].numpy(),
                                            gt_pose=None if r["gt_pose"] is None else r["gt_pose"].numpy()))
                         for r in state["records"]]

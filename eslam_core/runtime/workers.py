@@ -323,19 +323,6 @@ class PipelinedTracking(SLAM):
     def __init__(self, cfg: Config, intrinsics: Intrinsics):
         super().__init__(cfg, intrinsics)
         self.handed_over: list[int] = []
-        self.unmapped: deque = deque()  # surface points of the keyframes the shared map is not fitted to yet
-        self.observed_keyframes = 0
-
-    def _observe(self, depth: torch.Tensor, usable: torch.Tensor, pose: torch.Tensor) -> None:
-        # Space counts as observed only once the map has been fitted to it: until then the SDF there is whatever
-        # the map held before, and tracking against it would pull the pose (see `observe_mapped`).
-        self.unmapped.append(self._surface_points(depth, usable, pose))
-
-    def observe_mapped(self, mapped: int) -> None:
-        """The shared map now covers the first `mapped` keyframes."""
-        while self.observed_keyframes < mapped and self.unmapped:
-            self.observed.add(self.unmapped.popleft())
-            self.observed_keyframes += 1
 
     def _first_frame(self, pf: PreparedFrame) -> StepResult:
         pose0 = self._start_map(pf)
