@@ -4,10 +4,13 @@
     python bench/speed.py                      # the synthetic room when no data is given
 
 For each preset (paper-faithful `icl`/`replica` settings and `fast`) it measures, on real frames and a warmed-up
-map: the median time of a tracking and a mapping iteration split into plane lookup / decoders / rendering / losses /
-backward / optimizer step; the same iterations with the plain-torch plane lookup instead of the fused C kernel (a
-ratio measured in the same run); plane memory; and frames per second, ATE and peak memory of whole runs (each in
-its own process, so peak memory is the run's own). Prints a table and writes JSON.
+map: the median time of a rendering tracking iteration and a mapping iteration (a window of five keyframes spread
+over the sequence) split into plane lookup / decoders / rendering / losses / backward / optimizer step; the same
+iterations with the plain-torch plane lookup instead of the fused C kernel (a ratio measured in the same run); for
+a preset with the SDF tracker, its cost per frame; the speed-up over the official implementation's figures; plane
+memory; and frames per second, ATE and peak memory of whole runs (each in its own process, so peak memory is the
+run's own). Prints a table and writes JSON. On a shared or virtual machine, run it more than once: medians of one
+run move by 10-20 % between runs.
 """
 from __future__ import annotations
 
@@ -35,6 +38,7 @@ from eslam_core.losses import eslam_losses  # noqa: E402
 from eslam_core.mapping import Mapper  # noqa: E402
 from eslam_core.rendering import alpha_from_sdf, render_weights, sample_depths  # noqa: E402
 from eslam_core.slam import SLAM  # noqa: E402
+from eslam_core.tracking import make_tracker  # noqa: E402
 
 # The official implementation on this machine kind (2 cores, CPU), from ../shared/reference/eslam_facts.md.
 OFFICIAL = {"tracking_iteration_s": (0.27, 0.45), "mapping_iteration_s": (1.6, 2.4)}
@@ -118,8 +122,23 @@ def iteration_benchmark(cfg, ds, repeats: int, native: bool) -> dict:
         p.requires_grad_(True)
     field.beta.requires_grad_(cfg.model.learn_beta)
 
-    # Mapping: planes, decoders and poses of a window of keyframes.
-    kfs = [Keyframe.from_tensors(i, 0.0, frame.rgb, frame.depth, frame.depth >= 0, pose) for i in range(5)]
+    # The fast preset's tracker: a whole frame's Gauss-Newton alignment (all its iterations), against the newest
+    # keyframe's images.
+    track_frame = []
+    if cfg.tracking.method == "sdf":
+        tracker = make_tracker(cfg, dirs_cam, intr)
+        for _ in range(repeats + 1):
+            t0 = time.perf_counter()
+            tracker.track(field, frame, pose, observed=slam.observed, keyframe=slam.keyframes[-1])
+            track_frame.append(time.perf_counter() - t0)
+
+    # Mapping: planes, decoders and poses of a window of keyframes spread over the sequence (rays from different
+    # parts of the scene touch different plane cells, as in a real window: cache behaviour matters).
+    kfs = []
+    for i in np.linspace(0, len(ds) - 1, 5).astype(int):
+        f = prepare_frame(ds[int(i)], ds.intrinsics, cfg.camera)
+        kf_pose = torch.from_numpy(f.gt_pose).float() if f.gt_pose is not None else pose
+        kfs.append(Keyframe.from_tensors(int(i), 0.0, f.rgb, f.depth, f.depth >= 0, kf_pose))
     mapper = Mapper(cfg, dirs_cam, intr.height, intr.width)
     groups = [{"params": field.decoder_parameters(), "lr": 1e-3}, {"params": field.plane_parameters(), "lr": 5e-3}]
     optim = torch.optim.Adam(groups, fused=True)  # as in mapping.py
@@ -137,6 +156,7 @@ def iteration_benchmark(cfg, ds, repeats: int, native: bool) -> dict:
                                          cfg.mapping.weights, optim))
     params = field.parameter_count()
     return {"tracking": median_stages(track[1:]), "mapping": median_stages(mapping[1:]),
+            "tracking_frame_s": statistics.median(track_frame[1:]) if track_frame else None,
             "parameters": params, "plane_memory_mb": sum(p.numel() for p in field.plane_parameters()) * 4 / 2**20,
             "optimizer_state_mb": 2 * params * 4 / 2**20}
 
@@ -205,6 +225,17 @@ def main() -> int:
             print(f"{phase + ' (fused)':22s}" + "".join(fmt_ms(n[s]) + " " for s in STAGES)
                   + fmt_ms(n["total"]) + f"{t['total'] / n['total']:8.1f}x")
             print(f"{phase + ' (torch)':22s}" + "".join(fmt_ms(t[s]) + " " for s in STAGES) + fmt_ms(t["total"]))
+        cfg = load_config(preset, {"dataset": {"kind": kind}})
+        if r["native"]["tracking_frame_s"] is not None:
+            print(f"tracking per frame ({cfg.tracking.method} tracker, {cfg.tracking.iterations} iterations x "
+                  f"{cfg.tracking.rays} points): {1000 * r['native']['tracking_frame_s']:.1f} ms")
+        else:
+            lo, hi = OFFICIAL["tracking_iteration_s"]
+            mlo, mhi = OFFICIAL["mapping_iteration_s"]
+            n = r["native"]
+            print(f"faster than the official implementation: tracking iteration {lo / n['tracking']['total']:.1f}-"
+                  f"{hi / n['tracking']['total']:.1f}x, mapping iteration {mlo / n['mapping']['total']:.1f}-"
+                  f"{mhi / n['mapping']['total']:.1f}x")
         for run in r["runs"]:
             if "error" in run:
                 print(f"whole run failed: {run['error']}")
