@@ -140,13 +140,12 @@ class TrackingConfig:
     outlier_factor: float = 10.0  # drop rays whose depth error exceeds this times the batch median
     constant_velocity: bool = True
     weights: LossWeights = field(default_factory=lambda: LossWeights(10.0, 200.0, 50.0, 1.0, 5.0))
-    # The "sdf" method: robust scales of its geometric (metres) and photometric (grey level in [0, 1]) residuals,
-    # and the weight of the photometric one (0 = depth only).
+    # The "sdf" method (sdf_tracking.py): robust scales of its geometric (metres) and map-colour (grey level in
+    # [0, 1]) residuals and the weight of the latter (0 = not used); the same for its photometric residual against
+    # the newest keyframe's images, aligned coarse to fine over `pyramid_levels` image levels (photometric.py).
     huber: float = 0.01
     color_huber: float = 0.1
     color_weight: float = 1.0
-    # ... and of the photometric residual against the newest keyframe's images (see photometric.py), aligned
-    # coarse to fine over `pyramid_levels` image levels (0 = not used).
     photometric_huber: float = 0.05
     photometric_weight: float = 1.0
     pyramid_levels: int = 3
