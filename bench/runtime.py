@@ -116,7 +116,8 @@ def child(args) -> int:
     threads = (args.lockstep_threads or cores) if args.mode == "lockstep" else (args.threads or max(1, cores // 2))
     options = {}
     if args.mode == "pipelined":
-        options = {"lend_threads": not args.no_lend, "keyframe_backlog": args.keyframe_backlog}
+        options = {"lend_threads": not args.no_lend, "keyframe_backlog": args.keyframe_backlog,
+                   "publish_every": args.publish_every}
     result = run_mode(args.mode, cfg, frames, ds.intrinsics, threads, options)
     print("RESULT " + json.dumps(result), flush=True)
     return 0
@@ -132,6 +133,7 @@ def run_child(args, mode: str) -> Optional[dict]:
         cmd += ["--keyframe-backlog", str(args.keyframe_backlog)]
     if args.no_lend:
         cmd += ["--no-lend"]
+    cmd += ["--publish-every", str(args.publish_every)]
     for s in args.set:
         cmd += ["--set", s]
     print(f"running {mode} ...", flush=True)
@@ -169,6 +171,9 @@ def main() -> int:
                     help="pipelined: keyframes that may wait before older ones are merged into the newest one's "
                          "mapping step (default: none merged, every keyframe gets its step as in lock-step)")
     ap.add_argument("--no-lend", action="store_true", help="pipelined: an idle worker keeps its threads")
+    ap.add_argument("--publish-every", type=int, default=5,
+                    help="pipelined: mapping iterations between mid-step map publications (default 5; larger: the "
+                         "tracker sees only maps at the end of a step)")
     ap.add_argument("--repeats", type=int, default=1, help="runs per mode, in alternating order (medians reported)")
     ap.add_argument("--size", default="320x240", help="synthetic room image size (without --data)")
     ap.add_argument("--out", type=Path, default=Path("bench_runtime.json"), help="JSON results file")
