@@ -31,6 +31,12 @@ class Intrinsics:
     def matrix(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
+    def project(self, p_cam):
+        """Pixel coordinates (u, v) of camera points (..., 3) (torch tensors). Depth is clamped to 1e-6 so that
+        points behind the camera give finite values: callers test z themselves."""
+        z = p_cam[..., 2].clamp_min(1e-6)
+        return self.fx * p_cam[..., 0] / z + self.cx, self.fy * p_cam[..., 1] / z + self.cy
+
     def scaled(self, factor: float) -> "Intrinsics":
         """Intrinsics of the image resized by `factor` (pixel-centre convention)."""
         return replace(

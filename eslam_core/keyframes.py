@@ -53,9 +53,7 @@ def overlap_fractions(points_world: torch.Tensor, poses: torch.Tensor, intr: Int
     w2c = torch.linalg.inv(poses)
     p = torch.einsum("kij,nj->kni", w2c[:, :3, :3], points_world) + w2c[:, None, :3, 3]
     z = p[..., 2]
-    zc = z.clamp_min(1e-6)
-    u = intr.fx * p[..., 0] / zc + intr.cx
-    v = intr.fy * p[..., 1] / zc + intr.cy
+    u, v = intr.project(p)
     inside = (z > 0) & (u >= margin) & (u < intr.width - margin) & (v >= margin) & (v < intr.height - margin)
     return inside.float().mean(-1)
 

@@ -67,14 +67,6 @@ class Reference:
                          pose.double())
 
 
-def project(points_world: torch.Tensor, pose: torch.Tensor, intr: Intrinsics
-            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """World points (N, 3) -> camera points of the camera `pose` (c2w) and their pixel coordinates u, v."""
-    p = (points_world - pose[:3, 3]) @ pose[:3, :3]  # R^T (x - t) for row vectors
-    z = p[:, 2].clamp_min(1e-6)
-    return p, intr.fx * p[:, 0] / z + intr.cx, intr.fy * p[:, 1] / z + intr.cy
-
-
 def photometric_residuals(x: torch.Tensor, grey_current: torch.Tensor, ref: Reference, level: int,
                           intr: Intrinsics, occlusion: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Residuals I_r(pi(x)) - I_c (N,), their gradients in the world point x (N, 3) and which are valid (N,).
@@ -83,7 +75,8 @@ def photometric_residuals(x: torch.Tensor, grey_current: torch.Tensor, ref: Refe
     same surface there: its depth agrees with the reference depth to within `occlusion` metres.
     """
     pose = ref.pose.to(x.dtype)
-    p, u, v = project(x, pose, intr)
+    p = (x - pose[:3, 3]) @ pose[:3, :3]  # R^T (x - t) for row vectors: the point in the reference camera
+    u, v = intr.project(p)
     z = p[:, 2]
     valid = (z > 0.05) & (u >= 1) & (u <= intr.width - 2) & (v >= 1) & (v <= intr.height - 2)
     ui = u.round().long().clamp(0, intr.width - 1)
