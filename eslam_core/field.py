@@ -9,6 +9,7 @@ from typing import Protocol
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from .config import ModelConfig
@@ -69,3 +70,48 @@ class SceneField(nn.Module):
 
     def parameter_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+
+class FrozenField:
+    """The field as a tracker sees it: the map is fixed, so no gradient flows into it, and each decoder's first
+    layer is folded into its feature planes.
+
+    The first layer's pre-activation W_1 f(p) + b_1 is linear in the plane table (f is bilinear weights times table
+    rows, summed over planes and concatenated over scales), so W_1 can be applied to every table row once, scale by
+    scale, instead of to every sample: a sample then gathers `decoder_hidden` (16) channels per corner instead of
+    2 x 32 and no per-sample feature vector is written or back-propagated. Same values as the field up to float
+    rounding. The folded tables are built on first use (a few ms), so a tracker that never asks for colour never
+    folds the appearance planes; the field must not change while its FrozenField is in use (trackers build one per
+    frame).
+    """
+
+    def __init__(self, field: SceneField):
+        self.beta = field.beta.detach()
+        self.bound_min, self.bound_max = field.bound_min, field.bound_max
+        self._parts = {"sdf": (field.geometry_planes, field.geometry_decoder),
+                       "color": (field.appearance_planes, field.appearance_decoder)}
+        self._folded: dict[str, tuple] = {}
+
+    def first_layer(self, which: str, points: torch.Tensor) -> torch.Tensor:
+        """(N, 3) -> (N, hidden): the pre-activation W_1 f(p) + b_1 of the "sdf" or "color" decoder."""
+        planes, decoder = self._parts[which]
+        if which not in self._folded:
+            linears = [m for m in decoder.mlp if isinstance(m, nn.Linear)]
+            with torch.no_grad():
+                table = planes.project(linears[0].weight)
+            self._folded[which] = (table, linears[0].bias.detach(),
+                                   [(m.weight.detach(), m.bias.detach()) for m in linears[1:]])
+        table, bias, _ = self._folded[which]
+        return planes.lookup(points, table).view(len(points), len(planes.resolutions), -1).sum(1) + bias
+
+    def decode(self, which: str, h: torch.Tensor) -> torch.Tensor:
+        """The decoder's layers after the first, on first_layer's output."""
+        for weight, bias in self._folded[which][2]:
+            h = F.linear(F.relu(h), weight, bias)
+        return self._parts[which][1].activation(h)
+
+    def sdf(self, points: torch.Tensor) -> torch.Tensor:
+        return self.decode("sdf", self.first_layer("sdf", points)).squeeze(-1)
+
+    def color(self, points: torch.Tensor) -> torch.Tensor:
+        return self.decode("color", self.first_layer("color", points))

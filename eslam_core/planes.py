@@ -147,11 +147,21 @@ class FeaturePlanes(nn.Module):
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """(N, 3) world points -> (N, scales * channels) features."""
+        return self.lookup(points, self.table)
+
+    def lookup(self, points: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
+        """The lookup on any table of this layout (rows, any number of channels): (N, scales * table channels)."""
         lib = load_kernel("plane_lookup") if self.use_native else None
-        if lib is None or points.dtype != torch.float32 or self.table.dtype != torch.float32:
-            return reference_lookup(points, self.table, self.bound_min, self.bound_extent, self.layout)
-        return _FusedLookup.apply(points, self.table, self._sizes, self._offsets, self.bound_min,
-                                  self.bound_extent, lib)
+        if lib is None or points.dtype != torch.float32 or table.dtype != torch.float32:
+            return reference_lookup(points, table, self.bound_min, self.bound_extent, self.layout)
+        return _FusedLookup.apply(points, table, self._sizes, self._offsets, self.bound_min, self.bound_extent, lib)
+
+    def project(self, weight: torch.Tensor) -> torch.Tensor:
+        """The table with each scale's rows multiplied by that scale's block of `weight` (out, scales * channels),
+        a linear layer applied to the features: (rows, out). lookup(p, project(W)) summed over scales = W f(p)."""
+        starts = [offsets[0] for offsets in self.layout.offsets] + [self.layout.rows]
+        blocks = weight.split(self.channels, dim=1)
+        return torch.cat([self.table[a:b] @ w.T for a, b, w in zip(starts[:-1], starts[1:], blocks)])
 
     def plane(self, scale: int, which: int) -> torch.Tensor:
         """One plane as a (channels, rows, cols) image (for inspection and tests)."""

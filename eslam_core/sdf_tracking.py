@@ -26,12 +26,12 @@ import torch
 
 from .camera import Intrinsics
 from .config import Config
-from .field import SceneField
+from .field import FrozenField, RadianceField, SceneField
 from .frames import PreparedFrame, border_mask
 from .keyframes import Keyframe
 from .observed import ObservedSpace
 from .photometric import GREY, Reference, grey_pyramid, photometric_residuals, sample
-from .tracking import TrackingResult, frozen
+from .tracking import TrackingResult
 
 SATURATED_COLOR = 3.0  # the colour penalty of a saturated point, in units of its Huber scale
 
@@ -57,7 +57,7 @@ def huber_cost(r: torch.Tensor) -> torch.Tensor:
     return torch.where(a <= 1.0, 0.5 * a**2, a - 0.5)
 
 
-def field_residuals(field: SceneField, x: torch.Tensor, truncation: float, with_color: bool
+def field_residuals(field: RadianceField, x: torch.Tensor, truncation: float, with_color: bool
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """Signed distance T * phi_g(x) (metres) and grey level g(phi_a(x)), each with its gradient in x."""
     x = x.detach().requires_grad_(True)
@@ -133,59 +133,59 @@ class SDFTracker:
         R, t = init_pose[:3, :3].double(), init_pose[:3, 3].double()
         used = photo_used = None  # the points scored, fixed at the initial pose so that costs compare
         best_cost, best = float("inf"), init_pose.clone()
-        with frozen(field):
-            for it in range(tc.iterations + 1):  # the last pass only scores the final pose
-                x = p_cam @ R.T + t
-                sdf, sdf_grad, grey, grey_grad = field_residuals(field, x.float(), T, lam > 0)
-                if used is None:
-                    used = observed.contains(x.float()) if observed is not None else \
-                        torch.ones(len(x), dtype=torch.bool)
-                    if used.sum() < 30:
-                        break
-                band = used & (sdf.abs() < 0.99 * T)
-                r_geo = sdf.clamp(-T, T) / tc.huber
-                cost = huber_cost(r_geo)
-                if lam > 0:
-                    r_col = (grey - grey_pixel) / tc.color_huber
-                    cost = cost + lam * torch.where(band, huber_cost(r_col), huber_cost(torch.tensor(SATURATED_COLOR)))
-                cost = float(cost[used].mean())
-                if ref is not None:
-                    r_ph, g_ph, ok = photometric_residuals(x, grey_current[0], ref, 0, self.intr, T)
-                    if photo_used is None:
-                        photo_used = ok
-                    if photo_used.any():
-                        r_ph = r_ph / tc.photometric_huber
-                        photo_cost = torch.where(ok, huber_cost(r_ph), huber_cost(torch.tensor(SATURATED_COLOR)))
-                        cost += tc.photometric_weight * float(photo_cost[photo_used].mean())
-                if cost < best_cost:
-                    best_cost = cost
-                    best = torch.eye(4)
-                    best[:3, :3], best[:3, 3] = R.float(), t.float()
-                if it == tc.iterations or band.sum() < 30:
+        fixed = FrozenField(field)  # the map does not change while tracking
+        for it in range(tc.iterations + 1):  # the last pass only scores the final pose
+            x = p_cam @ R.T + t
+            sdf, sdf_grad, grey, grey_grad = field_residuals(fixed, x.float(), T, lam > 0)
+            if used is None:
+                used = observed.contains(x.float()) if observed is not None else \
+                    torch.ones(len(x), dtype=torch.bool)
+                if used.sum() < 30:
                     break
-                xs, rs, gs, ws = [x[band]], [r_geo[band]], [sdf_grad[band].double() / tc.huber], \
-                    [huber_weights(r_geo[band])]
-                if lam > 0:
-                    rc = r_col[band]
-                    xs.append(x[band])
-                    rs.append(rc)
-                    gs.append(grey_grad[band].double() / tc.color_huber)
-                    ws.append(lam * huber_weights(rc))
-                if ref is not None and photo_used.any():
-                    level = pyramid_level(it, tc.iterations, len(ref.levels))
-                    if level > 0:
-                        r_ph, g_ph, ok = photometric_residuals(x, grey_current[level], ref, level, self.intr, T)
-                        r_ph = r_ph / tc.photometric_huber
-                    keep = ok & photo_used
-                    xs.append(x[keep])
-                    rs.append(r_ph[keep])
-                    gs.append(g_ph[keep] / tc.photometric_huber)
-                    ws.append(tc.photometric_weight * huber_weights(r_ph[keep]))
-                delta = gauss_newton_step(torch.cat(xs), torch.cat(rs), torch.cat(gs), torch.cat(ws), damping=1e-4)
-                if not torch.isfinite(delta).all():
-                    break
-                dR = so3_exp(delta[3:])
-                R, t = dR @ R, dR @ t + delta[:3]
-                if delta.norm() < 1e-6:
-                    break
+            band = used & (sdf.abs() < 0.99 * T)
+            r_geo = sdf.clamp(-T, T) / tc.huber
+            cost = huber_cost(r_geo)
+            if lam > 0:
+                r_col = (grey - grey_pixel) / tc.color_huber
+                cost = cost + lam * torch.where(band, huber_cost(r_col), huber_cost(torch.tensor(SATURATED_COLOR)))
+            cost = float(cost[used].mean())
+            if ref is not None:
+                r_ph, g_ph, ok = photometric_residuals(x, grey_current[0], ref, 0, self.intr, T)
+                if photo_used is None:
+                    photo_used = ok
+                if photo_used.any():
+                    r_ph = r_ph / tc.photometric_huber
+                    photo_cost = torch.where(ok, huber_cost(r_ph), huber_cost(torch.tensor(SATURATED_COLOR)))
+                    cost += tc.photometric_weight * float(photo_cost[photo_used].mean())
+            if cost < best_cost:
+                best_cost = cost
+                best = torch.eye(4)
+                best[:3, :3], best[:3, 3] = R.float(), t.float()
+            if it == tc.iterations or band.sum() < 30:
+                break
+            xs, rs, gs, ws = [x[band]], [r_geo[band]], [sdf_grad[band].double() / tc.huber], \
+                [huber_weights(r_geo[band])]
+            if lam > 0:
+                rc = r_col[band]
+                xs.append(x[band])
+                rs.append(rc)
+                gs.append(grey_grad[band].double() / tc.color_huber)
+                ws.append(lam * huber_weights(rc))
+            if ref is not None and photo_used.any():
+                level = pyramid_level(it, tc.iterations, len(ref.levels))
+                if level > 0:
+                    r_ph, g_ph, ok = photometric_residuals(x, grey_current[level], ref, level, self.intr, T)
+                    r_ph = r_ph / tc.photometric_huber
+                keep = ok & photo_used
+                xs.append(x[keep])
+                rs.append(r_ph[keep])
+                gs.append(g_ph[keep] / tc.photometric_huber)
+                ws.append(tc.photometric_weight * huber_weights(r_ph[keep]))
+            delta = gauss_newton_step(torch.cat(xs), torch.cat(rs), torch.cat(gs), torch.cat(ws), damping=1e-4)
+            if not torch.isfinite(delta).all():
+                break
+            dR = so3_exp(delta[3:])
+            R, t = dR @ R, dR @ t + delta[:3]
+            if delta.norm() < 1e-6:
+                break
         return TrackingResult(best, best_cost, len(candidates))

@@ -7,7 +7,6 @@ iterations is kept, not the last one.
 """
 from __future__ import annotations
 
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,7 +14,7 @@ import torch
 
 from .camera import Intrinsics
 from .config import Config
-from .field import SceneField
+from .field import FrozenField, SceneField
 from .frames import PreparedFrame, border_mask
 from .geometry import params_to_pose, pose_to_params, rays_to_world, scale_motion
 from .keyframes import Keyframe
@@ -29,19 +28,6 @@ class TrackingResult:
     pose: torch.Tensor  # (4, 4) camera-to-world
     loss: float  # best loss over the iterations
     rays: int  # rays per iteration after dropping those without depth
-
-
-@contextmanager
-def frozen(module: torch.nn.Module):
-    """Temporarily stop gradients into a module's parameters (the map is fixed while tracking)."""
-    flags = [(p, p.requires_grad) for p in module.parameters()]
-    for p, _ in flags:
-        p.requires_grad_(False)
-    try:
-        yield module
-    finally:
-        for p, flag in flags:
-            p.requires_grad_(flag)
 
 
 def constant_velocity(prev2: np.ndarray | None, prev: np.ndarray, time_ratio: float = 1.0) -> np.ndarray:
@@ -92,20 +78,20 @@ class Tracker:
                                  betas=(0.5, 0.999))
         rgb, depth = frame.rgb.reshape(-1, 3), frame.depth.reshape(-1)
         best_loss, best_pose = float("inf"), init_pose.clone()
-        with frozen(field):
-            for _ in range(tc.iterations):
-                pix = candidates[torch.randint(len(candidates), (tc.rays,))]
-                c2w = params_to_pose(t, q)
-                origins, dirs = rays_to_world(self.dirs_cam[pix], c2w)
-                d_gt = depth[pix]
-                out = render_rays(field, origins, dirs, d_gt, self.cfg.render, self.cfg.model.truncation)
-                keep = outlier_mask((out.depth.detach() - d_gt).abs(), tc.outlier_factor)
-                loss = eslam_losses(out, d_gt, rgb[pix], self.cfg.model.truncation, keep).total(tc.weights)
-                if loss.item() < best_loss:
-                    best_loss, best_pose = loss.item(), c2w.detach().clone()
-                optim.zero_grad(set_to_none=True)
-                loss.backward()
-                optim.step()
+        fixed = FrozenField(field)  # the map does not change while tracking
+        for _ in range(tc.iterations):
+            pix = candidates[torch.randint(len(candidates), (tc.rays,))]
+            c2w = params_to_pose(t, q)
+            origins, dirs = rays_to_world(self.dirs_cam[pix], c2w)
+            d_gt = depth[pix]
+            out = render_rays(fixed, origins, dirs, d_gt, self.cfg.render, self.cfg.model.truncation)
+            keep = outlier_mask((out.depth.detach() - d_gt).abs(), tc.outlier_factor)
+            loss = eslam_losses(out, d_gt, rgb[pix], self.cfg.model.truncation, keep).total(tc.weights)
+            if loss.item() < best_loss:
+                best_loss, best_pose = loss.item(), c2w.detach().clone()
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            optim.step()
         return TrackingResult(best_pose, best_loss, len(candidates))
 
 

@@ -1,0 +1,46 @@
+"""The tracker's snapshot of the map (decoders' first layer folded into the planes) against the field itself."""
+import numpy as np
+import pytest
+import torch
+
+from eslam_core.config import load_config
+from eslam_core.field import FrozenField, SceneField
+from eslam_core.native import load_kernel
+
+BOUND = np.array([[-1.0, -0.5, -0.3], [1.4, 1.42, 0.9]])
+
+
+@pytest.fixture
+def field():
+    torch.manual_seed(0)
+    f = SceneField(BOUND, load_config("replica").model)
+    with torch.no_grad():  # planes as after mapping: features of order 0.1, so the decoders are far from linear
+        for table in f.plane_parameters():
+            table.normal_(0.0, 0.1)
+    return f
+
+
+@pytest.mark.parametrize("native", [False, True])
+def test_frozen_field_equals_field_with_point_gradients(field, native):
+    if native and load_kernel("plane_lookup") is None:
+        pytest.skip("no C compiler")
+    for planes in (field.geometry_planes, field.appearance_planes):
+        planes.use_native = native
+    fixed = FrozenField(field)
+    x = torch.from_numpy(np.random.default_rng(2).uniform(BOUND[0], BOUND[1], (5000, 3))).float()
+    for which in ("sdf", "color"):
+        xa, xb = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+        a, b = getattr(field, which)(xa), getattr(fixed, which)(xb)
+        assert a.shape == b.shape
+        assert (a - b).abs().max() <= 1e-5
+        assert a.std() > 0.01  # the comparison is not between two constants
+        (ga,) = torch.autograd.grad(a.sum(), xa)
+        (gb,) = torch.autograd.grad(b.sum(), xb)
+        assert (ga - gb).abs().max() <= 1e-5 * ga.abs().max()
+
+
+def test_frozen_field_sends_no_gradient_into_the_map(field):
+    x = torch.zeros(10, 3, requires_grad=True)
+    fixed = FrozenField(field)
+    (fixed.sdf(x).sum() + fixed.color(x).sum()).backward()
+    assert x.grad is not None and all(p.grad is None for p in field.parameters())
