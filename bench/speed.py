@@ -147,16 +147,22 @@ def iteration_benchmark(cfg, ds, repeats: int, native: bool) -> dict:
         kf_pose = torch.from_numpy(f.gt_pose).float() if f.gt_pose is not None else pose
         kfs.append(Keyframe.from_tensors(int(i), 0.0, f.rgb, f.depth, f.depth >= 0, kf_pose))
     mapper = Mapper(cfg, dirs_cam, intr.height, intr.width)
+    # Window poses are optimised too when the preset does (the oldest one anchors the gauge), as in mapping.py.
+    pose_params = [[p.requires_grad_(True) for p in pose_to_params(kf.pose)] for kf in kfs[1:]] \
+        if cfg.mapping.joint_poses else []
     groups = [{"params": field.decoder_parameters(), "lr": 1e-3}, {"params": field.plane_parameters(), "lr": 5e-3}]
+    if pose_params:
+        groups.append({"params": [p for tq in pose_params for p in tq], "lr": 1e-3})
     optim = torch.optim.Adam(groups, fused=True)  # as in mapping.py
     mapping = []
     per = cfg.mapping.rays // len(kfs)
     for _ in range(repeats + 1):
         o, d, dg, cg = [], [], [], []
-        for kf in kfs:
+        for k, kf in enumerate(kfs):
             pix = mapper._pixels(kf, per)
-            d.append(dirs_cam[pix] @ kf.pose[:3, :3].T)
-            o.append(kf.pose[:3, 3].expand(len(pix), 3))
+            c2w = params_to_pose(*pose_params[k - 1]) if pose_params and k > 0 else kf.pose
+            d.append(dirs_cam[pix] @ c2w[:3, :3].T)
+            o.append(c2w[:3, 3].expand(len(pix), 3))
             dg.append(kf.depths(pix))
             cg.append(kf.colors(pix))
         mapping.append(staged_iteration(field, torch.cat(o), torch.cat(d), torch.cat(dg), torch.cat(cg), cfg,

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import torch
 
 from .config import Config
+from .cpu import denormals_flushed
 from .field import SceneField
 from .frames import border_mask
 from .geometry import params_to_pose, pose_to_params
@@ -45,6 +46,7 @@ class Mapper:
             return candidates
         return candidates[torch.randint(len(candidates), (n,))]
 
+    @denormals_flushed()  # see cpu.py
     def map(self, field: SceneField, keyframes: list[Keyframe], window: list[int], first: bool = False,
             optimise_poses: bool = False) -> MappingResult:
         mc = self.cfg.mapping

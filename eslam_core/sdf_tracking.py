@@ -26,6 +26,7 @@ import torch
 
 from .camera import Intrinsics
 from .config import Config
+from .cpu import denormals_flushed
 from .field import FrozenField, RadianceField, SceneField
 from .frames import PreparedFrame, border_mask
 from .keyframes import Keyframe
@@ -108,6 +109,7 @@ class SDFTracker:
         ref.pose = keyframe.pose.double()
         return ref
 
+    @denormals_flushed()  # see cpu.py
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
               usable: torch.Tensor | None = None, observed: ObservedSpace | None = None,
               keyframe: Keyframe | None = None) -> TrackingResult:

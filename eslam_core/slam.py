@@ -18,6 +18,7 @@ import torch
 from .bounds import estimate_bound, grow_to_multiple, outside_mask
 from .camera import Frame, Intrinsics
 from .config import Config, config_from_dict
+from .cpu import keep_freed_memory
 from .field import SceneField
 from .frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
 from .keyframes import Keyframe, select_window
@@ -51,6 +52,7 @@ class StepResult:
 
 class SLAM:
     def __init__(self, cfg: Config, intrinsics: Intrinsics):
+        keep_freed_memory()  # process-wide, see cpu.py
         self.cfg = cfg
         self.input_intrinsics = intrinsics
         self.intr = working_intrinsics(intrinsics, cfg.camera)

@@ -14,6 +14,7 @@ import torch
 
 from .camera import Intrinsics
 from .config import Config
+from .cpu import denormals_flushed
 from .field import FrozenField, SceneField
 from .frames import PreparedFrame, border_mask
 from .geometry import params_to_pose, pose_to_params, rays_to_world, scale_motion
@@ -59,6 +60,7 @@ class Tracker:
         self.dirs_cam = dirs_cam  # (H*W, 3)
         self.border = border_mask(height, width, cfg.tracking.border).reshape(-1)
 
+    @denormals_flushed()  # see cpu.py
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
               usable: torch.Tensor | None = None, observed: ObservedSpace | None = None,
               keyframe: Keyframe | None = None) -> TrackingResult:

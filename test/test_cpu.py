@@ -1,0 +1,31 @@
+"""CPU settings: denormals flushed in every torch thread inside the block and restored after it; glibc keeps freed
+memory."""
+import platform
+
+import pytest
+import torch
+
+from eslam_core.cpu import denormals_flushed, keep_freed_memory
+from eslam_core.native import load_kernel
+
+
+def nonzero_after_arithmetic(x: torch.Tensor) -> int:
+    return int(torch.count_nonzero(x * 1.0))
+
+
+def test_denormals_are_flushed_in_all_torch_threads_inside_the_block_only():
+    if load_kernel("denormals") is None:
+        pytest.skip("no C compiler")
+    # The largest float32 denormal (just below 1.18e-38), set bitwise; big enough for torch to run it threaded.
+    tiny = torch.full((1 << 22,), 0x007FFFFF, dtype=torch.int32).view(torch.float32)
+    assert nonzero_after_arithmetic(tiny) == len(tiny)
+    with denormals_flushed():
+        with denormals_flushed():  # nested blocks: only the outermost switches back
+            pass
+        assert nonzero_after_arithmetic(tiny) == 0  # read as zero by every thread's arithmetic
+    assert nonzero_after_arithmetic(tiny) == len(tiny)
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt is glibc's")
+def test_glibc_keeps_freed_memory():
+    assert keep_freed_memory()
