@@ -30,6 +30,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from eslam_core.config import load_config  # noqa: E402
+from eslam_core.cpu import denormals_flushed  # noqa: E402
 from eslam_core.datasets import open_dataset  # noqa: E402
 from eslam_core.field import FrozenField  # noqa: E402
 from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics  # noqa: E402
@@ -95,6 +96,7 @@ def median_stages(samples: list[dict]) -> dict:
     return out
 
 
+@denormals_flushed()  # as tracking and mapping run
 def iteration_benchmark(cfg, ds, repeats: int, native: bool) -> dict:
     """Median tracking and mapping iteration times on a map warmed up on the first frames."""
     torch.manual_seed(0)
