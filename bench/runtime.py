@@ -117,7 +117,7 @@ def child(args) -> int:
     options = {}
     if args.mode == "pipelined":
         options = {"lend_threads": not args.no_lend, "keyframe_backlog": args.keyframe_backlog,
-                   "publish_every": args.publish_every}
+                   "publish_every": args.publish_every, "catch_up_iterations": args.catch_up_iterations}
     result = run_mode(args.mode, cfg, frames, ds.intrinsics, threads, options)
     print("RESULT " + json.dumps(result), flush=True)
     return 0
@@ -131,6 +131,8 @@ def run_child(args, mode: str) -> Optional[dict]:
            "--threads", str(args.threads), "--lockstep-threads", str(args.lockstep_threads)]
     if args.keyframe_backlog is not None:
         cmd += ["--keyframe-backlog", str(args.keyframe_backlog)]
+    if args.catch_up_iterations is not None:
+        cmd += ["--catch-up-iterations", str(args.catch_up_iterations)]
     if args.no_lend:
         cmd += ["--no-lend"]
     cmd += ["--publish-every", str(args.publish_every)]
@@ -170,6 +172,9 @@ def main() -> int:
     ap.add_argument("--keyframe-backlog", type=int, default=None,
                     help="pipelined: keyframes that may wait before older ones are merged into the newest one's "
                          "mapping step (default: none merged, every keyframe gets its step as in lock-step)")
+    ap.add_argument("--catch-up-iterations", type=int, default=None,
+                    help="pipelined: once a newer keyframe waits, a mapping step ends after this many iterations "
+                         "(default: never, every step runs all its iterations as in lock-step)")
     ap.add_argument("--no-lend", action="store_true", help="pipelined: an idle worker keeps its threads")
     ap.add_argument("--publish-every", type=int, default=5,
                     help="pipelined: mapping iterations between mid-step map publications (default 5; larger: the "

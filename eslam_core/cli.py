@@ -60,7 +60,9 @@ def cmd_run(args) -> int:
     ds = open_configured_dataset(cfg, Path(args.data), args.frames, args.stride)
     s = run_sequence(cfg, ds, Path(args.out), data_label=str(Path(args.data).resolve()),
                      frames=(args.frames[0], args.frames[1], args.stride), resume=args.resume,
-                     progress=not args.quiet, write_mesh=not args.no_mesh, workers=args.workers, policy=args.policy)
+                     progress=not args.quiet, write_mesh=not args.no_mesh, workers=args.workers, policy=args.policy,
+                     runtime_options={} if args.catch_up_iterations is None else
+                     {"catch_up_iterations": args.catch_up_iterations})
     ate = "n/a (no ground truth)" if s.ate_rmse_cm is None else f"{s.ate_rmse_cm:.2f} cm"
     stopped = f" (stopped by {s.stopped_by}: trajectory and checkpoint so far)" if s.stopped_by else ""
     print(f"{s.n_frames} frames, {s.seconds_per_frame:.2f} s/frame, ATE RMSE {ate}, "
@@ -125,6 +127,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--policy", choices=("offline", "live"), default="offline",
                    help="offline: every frame in order (default); live: frames fed at the data set's frame rate, "
                         "the tracker skips to the newest when behind (dropped frames are counted)")
+    r.add_argument("--catch-up-iterations", type=int, default=None, metavar="N",
+                   help="--workers 2: once a newer keyframe waits, a mapping step ends after N iterations (default: "
+                        "every step runs all its iterations)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_run)
 

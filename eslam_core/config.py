@@ -139,6 +139,9 @@ class TrackingConfig:
     border: int = 75  # pixels ignored at the image border
     outlier_factor: float = 10.0  # drop rays whose depth error exceeds this times the batch median
     constant_velocity: bool = True
+    # "render" method: draw rays only from pixels whose depth point (at the predicted pose) lies in observed space,
+    # where the map has been fitted (observed.py), unless that leaves fewer than half of them. Off in the paper.
+    observed_only: bool = False
     weights: LossWeights = field(default_factory=lambda: LossWeights(10.0, 200.0, 50.0, 1.0, 5.0))
     # The "sdf" method (sdf_tracking.py): robust scales of its geometric (metres) and map-colour (grey level in
     # [0, 1]) residuals and the weight of the latter (0 = not used); the same for its photometric residual against

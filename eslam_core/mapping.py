@@ -7,6 +7,7 @@ pose fixed, for more iterations at a higher learning rate.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Optional
 
 import torch
 
@@ -48,7 +49,9 @@ class Mapper:
 
     @denormals_flushed()  # see cpu.py
     def map(self, field: SceneField, keyframes: list[Keyframe], window: list[int], first: bool = False,
-            optimise_poses: bool = False) -> MappingResult:
+            optimise_poses: bool = False, stop_early: Optional[Callable[[int], bool]] = None) -> MappingResult:
+        """`stop_early(iterations done)`, asked after every iteration, may end the step before its iteration count
+        (the pipelined mapper does when it falls behind the tracker)."""
         mc = self.cfg.mapping
         iterations = mc.first_iterations if first else mc.iterations
         lr_factor = mc.first_lr_factor if first else 1.0
@@ -63,7 +66,9 @@ class Mapper:
         optim = torch.optim.Adam(groups, betas=(0.9, 0.999), fused=True)
         per_frame = max(1, mc.rays // len(window))
         loss_value = float("nan")
-        for _ in range(iterations):
+        for it in range(iterations):
+            if it > 0 and stop_early is not None and stop_early(it):
+                break
             origins, dirs, d_gt, rgb_gt = [], [], [], []
             for i in window:
                 kf = keyframes[i]

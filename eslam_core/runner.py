@@ -60,10 +60,12 @@ def ate_cm(slam: SLAM) -> Optional[float]:
 
 def run_sequence(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label: str = "",
                  frames: tuple = (0, None, 1), resume: Optional[Path] = None, progress: bool = True,
-                 write_mesh: bool = True, workers: int = 1, policy: str = "offline") -> RunSummary:
+                 write_mesh: bool = True, workers: int = 1, policy: str = "offline",
+                 runtime_options: Optional[dict] = None) -> RunSummary:
     """Process `dataset` (already subset to the frames to run) and write every output into `out_dir`.
 
-    workers / policy: see eslam_core.runtime (1 + "offline" = the lock-step schedule in this process)."""
+    workers / policy / runtime_options: see eslam_core.runtime.make_runtime (1 + "offline" = the lock-step schedule
+    in this process)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out_dir / "config.yaml")
@@ -71,7 +73,8 @@ def run_sequence(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label
     apply_threads(cfg)
     if workers != 1 or policy != "offline":
         return run_with_runtime(cfg, dataset, out_dir, data_label=data_label, frames=frames, resume=resume,
-                                progress=progress, write_mesh=write_mesh, workers=workers, policy=policy)
+                                progress=progress, write_mesh=write_mesh, workers=workers, policy=policy,
+                                options=runtime_options or {})
 
     if resume is not None:
         slam = load_checkpoint(resume)
@@ -164,7 +167,7 @@ class StopRequest:
 
 def run_with_runtime(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label: str, frames: tuple,
                      resume: Optional[Path], progress: bool, write_mesh: bool, workers: int,
-                     policy: str) -> RunSummary:
+                     policy: str, options: dict) -> RunSummary:
     """`run_sequence` through a runtime: frames are submitted as fast as they load (offline policy) or at the data
     set's frame rate (live policy), the progress bar follows the polled poses."""
     from .runtime import make_runtime
@@ -172,7 +175,7 @@ def run_with_runtime(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_l
     if resume is not None:
         raise ValueError("--resume continues a lock-step run only: use --workers 1 with --resume "
                          "(or start a new run without --resume)")
-    rt = make_runtime(cfg, dataset.intrinsics, workers=workers, policy=policy)
+    rt = make_runtime(cfg, dataset.intrinsics, workers=workers, policy=policy, **options)
     bar = tqdm(total=len(dataset), desc="eslam", unit="frame", disable=not progress, dynamic_ncols=True)
 
     def show(updates: list) -> None:

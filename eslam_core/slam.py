@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 from collections import deque
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -69,6 +69,7 @@ class SLAM:
         self.points_outside = 0
         self.points_seen = 0
         self._warned_outside = 0.0
+        self.stop_mapping_early: Optional[Callable[[int], bool]] = None  # see Mapper.map (set by the runtime)
         self.rng = np.random.default_rng(cfg.run.seed)
 
     # ------------------------------------------------------------------------------------------------ trajectory
@@ -196,7 +197,8 @@ class SLAM:
         window = select_window(self.keyframes, current, points, self.intr, self.cfg.mapping.window, self.rng)
         mc = self.cfg.mapping
         optimise_poses = mc.joint_poses and len(self.keyframes) > mc.joint_poses_after
-        res = self.mapper.map(self.field, self.keyframes, window, first=False, optimise_poses=optimise_poses)
+        res = self.mapper.map(self.field, self.keyframes, window, first=False, optimise_poses=optimise_poses,
+                              stop_early=self.stop_mapping_early)
         for i, pose in res.refined.items():
             self.keyframes[i].pose = pose.float()
         self.observe_mapped(len(self.keyframes))

@@ -64,13 +64,15 @@ class Tracker:
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
               usable: torch.Tensor | None = None, observed: ObservedSpace | None = None,
               keyframe: Keyframe | None = None) -> TrackingResult:
-        """`observed` and `keyframe` are not used: the paper's tracker renders every sampled ray against the map,
-        as the official code does."""
+        """`observed` restricts the rays with `tracking.observed_only` (otherwise, as in the paper and the official
+        code, any pixel with depth may be drawn); `keyframe` is not used."""
         tc = self.cfg.tracking
         valid = self.border & (frame.depth.reshape(-1) > 0)
         if usable is not None:
             valid &= usable.reshape(-1)
         candidates = torch.nonzero(valid).squeeze(1)
+        if tc.observed_only and observed is not None:
+            candidates = self._in_observed_space(candidates, frame.depth.reshape(-1), init_pose, observed)
         if len(candidates) < 10 or tc.iterations == 0:
             return TrackingResult(init_pose.clone(), float("nan"), len(candidates))
         t, q = pose_to_params(init_pose)
@@ -95,6 +97,14 @@ class Tracker:
             loss.backward()
             optim.step()
         return TrackingResult(best_pose, best_loss, len(candidates))
+
+    def _in_observed_space(self, candidates: torch.Tensor, depth: torch.Tensor, pose: torch.Tensor,
+                           observed: ObservedSpace) -> torch.Tensor:
+        """The candidate pixels whose depth point lies in observed space, or all of them if that is under half:
+        then the frame mostly sees new space, and rays through it still constrain the pose better than few rays."""
+        points = self.dirs_cam[candidates] * depth[candidates, None] @ pose[:3, :3].T + pose[:3, 3]
+        seen = observed.contains(points)
+        return candidates[seen] if 2 * int(seen.sum()) >= len(candidates) else candidates
 
 
 def make_tracker(cfg: Config, dirs_cam: torch.Tensor, intr: Intrinsics):

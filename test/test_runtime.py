@@ -483,3 +483,21 @@ def test_pipelined_tracker_observes_only_what_the_map_is_fitted_to(room_sequence
     assert int(state.observed.seen.sum()) == first and len(state.unobserved) == 2
     state.observe_mapped(3)
     assert int(state.observed.seen.sum()) > first and len(state.unobserved) == 1
+
+
+def test_mapper_catches_up_only_when_a_newer_keyframe_waits(monkeypatch):
+    """catch_up_iterations: a mapping step may end early once it has had its minimum and a newer keyframe is
+    pending or still in the queue."""
+    monkeypatch.setattr(workers, "register_optimizer_step_post_hook", lambda hook: None)
+    ch = workers.Channels(None, queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), HealthBoard(), Control(),
+                          None)
+    setup = workers.WorkerSetup(load_config("demo"), Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0), "offline", 1, os.getpid(),
+                                logging.INFO, catch_up_iterations=3)
+    mapper = workers.MapperWorker(setup, ch)
+    assert not mapper._behind(5)  # nothing newer
+    ch.board.add(Counter.KEYFRAMES)  # the tracker queued one
+    assert not mapper._behind(2) and mapper._behind(3)
+    ch.board.add(Counter.KEYFRAMES_RECEIVED)  # taken off the queue...
+    assert not mapper._behind(3)
+    mapper.pending.append(object())  # ...into pending
+    assert mapper._behind(3)

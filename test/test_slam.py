@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from eslam_core.cli import main
 from eslam_core.config import load_config
@@ -181,3 +182,22 @@ def test_mapping_draws_only_usable_pixels(usable_fraction):
     assert usable.reshape(-1)[pix].all()
     assert ((u >= 5) & (u < 75) & (v >= 5) & (v < 55)).all()
     assert len(torch.unique(pix)) > min(200, int(usable[5:55, 5:75].sum()) - 1)
+
+
+def test_mapping_step_can_end_early(room_sequence):
+    """SLAM.stop_mapping_early (the pipelined mapper's catch-up) ends a regular mapping step once it says so."""
+    from eslam_core.slam import SLAM
+
+    cfg = load_config("demo", {"mapping": {"first_iterations": 20, "iterations": 10}, "tracking": {"iterations": 2}})
+    slam = SLAM(cfg, room_sequence.intrinsics)
+    asked = []
+    slam.stop_mapping_early = lambda done: asked.append(done) or done >= 3
+    steps = []
+    hook = register_optimizer_step_post_hook(lambda opt, args, kw: steps.append(1) if opt.defaults["fused"] else None)
+    try:
+        for i in range(5):  # frame 0: the warm-up (never cut short); frame 4: a keyframe, cut after 3 iterations
+            slam.step(room_sequence[i])
+    finally:
+        hook.remove()
+    assert len(steps) == 20 + 3  # mapping's optimiser is the fused Adam (the rendering tracker's is not)
+    assert asked == [1, 2, 3]

@@ -118,3 +118,29 @@ def test_constant_velocity_scales_with_the_time_gap():
     assert np.allclose(step[:3, 3], [0.03, 0, 0], atol=1e-9)
     assert rotation_angle_deg(step[:3, :3]) == pytest.approx(3.0)
     assert time_ratio(0.0, 0.0, 1.0) == 1.0 and time_ratio(0.0, 1.0, 100.0) == 4.0
+
+
+def test_observed_only_draws_rays_from_observed_space(fitted_map, room_sequence):
+    """tracking.observed_only: candidate pixels are those whose depth point lies in observed space, all of them
+    when that would leave fewer than half."""
+    from eslam_core.observed import ObservedSpace
+
+    cfg, field, dirs = fitted_map
+    ds = room_sequence
+    frame = prepare_frame(ds[9], ds.intrinsics, cfg.camera)
+    pose = torch.from_numpy(frame.gt_pose).float()
+    depth = frame.depth.reshape(-1)
+    candidates = torch.nonzero(depth > 0).squeeze(1)
+    points = dirs[candidates] * depth[candidates, None] @ pose[:3, :3].T + pose[:3, 3]
+    column = candidates % ds.intrinsics.width
+    left = column < 0.75 * ds.intrinsics.width
+    tracker = Tracker(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width)
+
+    observed = ObservedSpace(field.bound, cfg.model.truncation)
+    assert torch.equal(tracker._in_observed_space(candidates, depth, pose, observed), candidates)  # nothing seen
+    observed.add(points[left])  # the left three quarters of the view have been mapped
+    kept = tracker._in_observed_space(candidates, depth, pose, observed)
+    kept_column = kept % ds.intrinsics.width
+    assert len(kept) >= left.sum()  # every observed pixel stays...
+    assert (kept_column < 0.9 * ds.intrinsics.width).float().mean() > 0.97  # ...and little of the unobserved edge
+    assert len(kept) < 0.95 * len(candidates)

@@ -198,8 +198,8 @@ def make_runtime(cfg: Config, intrinsics: Intrinsics, workers: int = 2, policy: 
     workers=1: lock-step SLAM on a background thread; workers=2: tracking and mapping processes. `threads`: torch
     threads per worker (default: `run.threads` from the config, or the machine's cores split between the workers).
     `options` tune the implementation: `capacity` (input buffer, both), and for workers=2 `publish_every`,
-    `lend_threads`, `keyframe_backlog` (see MultiProcessRuntime). Call `start()` (or use it as a context manager)
-    before submitting frames.
+    `lend_threads`, `keyframe_backlog`, `catch_up_iterations` (see MultiProcessRuntime). Call `start()` (or use it
+    as a context manager) before submitting frames.
     """
     check_policy(policy)
     if workers == 1:

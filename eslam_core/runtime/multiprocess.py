@@ -135,11 +135,12 @@ def assemble_slam(cfg: Config, intrinsics: Intrinsics, mapper_state: dict, recor
 class MultiProcessRuntime(SavingMixin):
     def __init__(self, cfg: Config, intrinsics: Intrinsics, policy: str = "offline", threads: Optional[int] = None,
                  capacity: int = DEFAULT_CAPACITY, publish_every: int = 5, lend_threads: bool = True,
-                 keyframe_backlog: Optional[int] = None):
+                 keyframe_backlog: Optional[int] = None, catch_up_iterations: Optional[int] = None):
         """threads: torch threads per worker; capacity: frames in the input ring; publish_every: optimiser
         iterations between mid-step map publications; lend_threads: an idle worker's threads go to the busy one;
         keyframe_backlog: keyframes that may wait for the mapper before the older ones are merged into the newest
-        one's step (None = every keyframe gets a step; the live policy always uses 0). See workers.py."""
+        one's step (None = every keyframe gets a step; the live policy always uses 0); catch_up_iterations: once a
+        newer keyframe waits, a mapping step ends after this many iterations (None = never). See workers.py."""
         self.cfg = cfg
         self.intrinsics = intrinsics
         self.policy = check_policy(policy)
@@ -153,6 +154,9 @@ class MultiProcessRuntime(SavingMixin):
         if keyframe_backlog is not None and keyframe_backlog < 0:
             raise RuntimeSetupError(f"keyframe_backlog must be >= 0 or None (no limit), got {keyframe_backlog}")
         self.keyframe_backlog = keyframe_backlog
+        if catch_up_iterations is not None and catch_up_iterations < 1:
+            raise RuntimeSetupError(f"catch_up_iterations must be >= 1 or None (never), got {catch_up_iterations}")
+        self.catch_up_iterations = catch_up_iterations
         self._hung: set = set()
         self.work_intr = working_intrinsics(intrinsics, cfg.camera)
         self._started = self._closed = False
@@ -196,7 +200,8 @@ class MultiProcessRuntime(SavingMixin):
         self._semaphores = semaphore_names(self._ring.cond, self._map_meta.lock, *self._queues.values())
         setup = WorkerSetup(self.cfg, self.intrinsics, self.policy, self.threads, os.getpid(),
                             logging.getLogger("eslam").getEffectiveLevel(), self.publish_every,
-                            os.environ.get("ESLAM_FAULT", ""), self.lend_threads, self.keyframe_backlog)
+                            os.environ.get("ESLAM_FAULT", ""), self.lend_threads, self.keyframe_backlog,
+                            self.catch_up_iterations)
         self._errors, self._processes, error_ends = {}, {}, {}
         for name, main in (("tracker", tracker_main), ("mapper", mapper_main)):
             self._errors[name], error_ends[name] = ctx.Pipe(duplex=False)

@@ -176,6 +176,9 @@ class WorkerSetup:
     # Keyframes allowed to wait while the mapper maps one; beyond that the older ones join the window of the newest
     # without a step of their own. None: every keyframe gets its step (offline); the live policy uses 0.
     keyframe_backlog: Optional[int] = None
+    # Once a newer keyframe waits, the current mapping step ends after this many iterations (None: never; the step
+    # runs all of them), so that a mapper slower than the tracker spends its time on the newest keyframes.
+    catch_up_iterations: Optional[int] = None
 
 
 @dataclass
@@ -600,6 +603,8 @@ class MapperWorker:
         """The map of the first keyframe, over the bound the tracker chose, and its warm-up."""
         self._update_backlog()
         self.slam = SLAM(self.setup.cfg, self.setup.intrinsics)  # its images arrive at the working resolution
+        if self.setup.catch_up_iterations is not None:
+            self.slam.stop_mapping_early = self._behind
         self.slam.bound = msg.bound
         self.slam.field = SceneField(msg.bound, self.setup.cfg.model)
         self.slam.keyframes = [msg.keyframe()]
@@ -618,6 +623,11 @@ class MapperWorker:
             return float("nan")  # stopping: keep the map as it is after the last completed iteration
         finally:
             self.publishing_mid_step = False
+
+    def _behind(self, iterations: int) -> bool:
+        """A newer keyframe waits (received, or still in the queue) and the step has had its minimum."""
+        queued = self.ch.board.get(Counter.KEYFRAMES) - self.ch.board.get(Counter.KEYFRAMES_RECEIVED)
+        return iterations >= self.setup.catch_up_iterations and (len(self.pending) > 0 or queued > 0)
 
     def _publish(self, step_done: bool = True) -> int:
         # In the middle of a step the newest keyframe is not fitted yet.
