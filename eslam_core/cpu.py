@@ -45,6 +45,7 @@ def set_flush_denormals(on: bool, threads: int | None = None) -> int:
 
 @contextmanager
 def denormals_flushed():
+    """Flush-to-zero on inside the block (also as a decorator), back off when the outermost block ends."""
     global _flush_depth
     threads = torch.get_num_threads()
     if _flush_depth == 0:
