@@ -56,6 +56,9 @@ def cmd_run(args) -> int:
     from .config import load_config
     from .runner import run_sequence
 
+    if args.catch_up_iterations is not None and args.workers != 2:
+        raise ValueError("--catch-up-iterations applies to the pipelined runtime: add --workers 2 (lock-step maps "
+                         "every keyframe in full)")
     cfg = load_config(args.config, parse_overrides(args.set))
     ds = open_configured_dataset(cfg, Path(args.data), args.frames, args.stride)
     s = run_sequence(cfg, ds, Path(args.out), data_label=str(Path(args.data).resolve()),

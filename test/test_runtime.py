@@ -386,6 +386,16 @@ def test_clear_errors(room_sequence):
             rt.submit(small)
     with pytest.raises(RuntimeSetupError, match="closed"):
         rt.submit(room_sequence[0])
+    with pytest.raises(RuntimeSetupError, match="catch_up_iterations must be >= 1"):
+        make_runtime(cfg, room_sequence.intrinsics, workers=2, catch_up_iterations=0)
+
+
+def test_cli_catch_up_needs_the_pipelined_runtime(tmp_path, capsys):
+    from eslam_core.cli import main
+
+    assert main(["run", "--config", "demo", "--data", str(tmp_path), "--out", str(tmp_path / "o"),
+                 "--catch-up-iterations", "5"]) == 2
+    assert "add --workers 2" in capsys.readouterr().err
 
 
 def _ring_frame(ring, i, live, timeout=0.0):
