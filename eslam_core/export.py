@@ -11,6 +11,7 @@ import trimesh
 
 from .culling import visible_mask
 from .evaluation.trajectory import Trajectory, write_tum
+from .geometry import depth_points_world
 from .mesh import MeshSettings, extract_mesh
 from .slam import SLAM
 
@@ -64,7 +65,7 @@ def observed_bound(slam: SLAM, margin: float) -> np.ndarray:
     for kf in slam.keyframes:
         d = kf.depth_image().reshape(-1)
         ok = (d > 0) & kf.usable.reshape(-1)
-        pts = (slam.dirs_cam[ok] * d[ok, None]) @ kf.pose[:3, :3].T + kf.pose[:3, 3]
+        pts = depth_points_world(slam.dirs_cam[ok], d[ok], kf.pose)
         if len(pts):
             lo = np.minimum(lo, pts.amin(0).numpy())
             hi = np.maximum(hi, pts.amax(0).numpy())

@@ -92,21 +92,26 @@ class FrozenField:
                        "color": (field.appearance_planes, field.appearance_decoder)}
         self._folded: dict[str, tuple] = {}
 
-    def first_layer(self, which: str, points: torch.Tensor) -> torch.Tensor:
-        """(N, 3) -> (N, hidden): the pre-activation W_1 f(p) + b_1 of the "sdf" or "color" decoder."""
-        planes, decoder = self._parts[which]
+    def _fold(self, which: str) -> tuple:
+        """(folded table, first-layer bias, [(weight, bias) of the later layers]), built on first use."""
         if which not in self._folded:
+            planes, decoder = self._parts[which]
             linears = [m for m in decoder.mlp if isinstance(m, nn.Linear)]
             with torch.no_grad():
                 table = planes.project(linears[0].weight)
             self._folded[which] = (table, linears[0].bias.detach(),
                                    [(m.weight.detach(), m.bias.detach()) for m in linears[1:]])
-        table, bias, _ = self._folded[which]
+        return self._folded[which]
+
+    def first_layer(self, which: str, points: torch.Tensor) -> torch.Tensor:
+        """(N, 3) -> (N, hidden): the pre-activation W_1 f(p) + b_1 of the "sdf" or "color" decoder."""
+        planes = self._parts[which][0]
+        table, bias, _ = self._fold(which)
         return planes.lookup(points, table).view(len(points), len(planes.resolutions), -1).sum(1) + bias
 
     def decode(self, which: str, h: torch.Tensor) -> torch.Tensor:
         """The decoder's layers after the first, on first_layer's output."""
-        for weight, bias in self._folded[which][2]:
+        for weight, bias in self._fold(which)[2]:
             h = F.linear(F.relu(h), weight, bias)
         return self._parts[which][1].activation(h)
 

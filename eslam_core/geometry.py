@@ -85,6 +85,11 @@ def rays_to_world(dirs_cam: torch.Tensor, c2w: torch.Tensor) -> tuple[torch.Tens
     return c2w[:, :3, 3], torch.einsum("nij,nj->ni", c2w[:, :3, :3], dirs_cam)
 
 
+def depth_points_world(dirs_cam: torch.Tensor, depth: torch.Tensor, c2w: torch.Tensor) -> torch.Tensor:
+    """World points (N, 3) of pixels with camera directions (N, 3) (unit z) and planar depths (N,), camera `c2w`."""
+    return dirs_cam * depth[:, None] @ c2w[:3, :3].T + c2w[:3, 3]
+
+
 def scale_motion(M: np.ndarray, factor: float) -> np.ndarray:
     """A rigid motion repeated `factor` times (rotation angle and translation scaled): velocity x time."""
     from scipy.spatial.transform import Rotation

@@ -21,6 +21,7 @@ from .config import Config, config_from_dict
 from .cpu import keep_freed_memory
 from .field import SceneField
 from .frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
+from .geometry import depth_points_world
 from .keyframes import Keyframe, select_window
 from .mapping import Mapper
 from .observed import ObservedSpace
@@ -159,7 +160,7 @@ class SLAM:
         take = torch.zeros_like(usable)
         take[::stride, ::stride] = True
         flat = torch.nonzero((take & usable & (depth > 0)).reshape(-1)).squeeze(1)
-        return self.dirs_cam[flat] * depth.reshape(-1)[flat, None] @ pose[:3, :3].T + pose[:3, 3]
+        return depth_points_world(self.dirs_cam[flat], depth.reshape(-1)[flat], pose)
 
     def _scene_bound(self, pf: PreparedFrame, pose0: np.ndarray) -> np.ndarray:
         step = self.cfg.model.coarse_resolution
@@ -173,7 +174,7 @@ class SLAM:
     def _usable_pixels(self, pf: PreparedFrame, pose: torch.Tensor) -> torch.Tensor:
         """Pixels whose measured surface lies inside the bound; the others are left out and counted."""
         depth = pf.depth.reshape(-1)
-        points = self.dirs_cam * depth[:, None] @ pose[:3, :3].T + pose[:3, 3]
+        points = depth_points_world(self.dirs_cam, depth, pose)
         outside = outside_mask(points, self.bound) & (depth > 0)
         n_out, n_valid = int(outside.sum()), int((depth > 0).sum())
         self.points_outside += n_out
@@ -193,7 +194,7 @@ class SLAM:
         with_depth = torch.nonzero(d > 0).squeeze(1)
         sample = with_depth[torch.randint(len(with_depth), (min(len(with_depth), 500),))] if len(with_depth) else \
             with_depth
-        points = self.dirs_cam[sample] * d[sample, None] @ kf.pose[:3, :3].T + kf.pose[:3, 3]
+        points = depth_points_world(self.dirs_cam[sample], d[sample], kf.pose)
         window = select_window(self.keyframes, current, points, self.intr, self.cfg.mapping.window, self.rng)
         mc = self.cfg.mapping
         optimise_poses = mc.joint_poses and len(self.keyframes) > mc.joint_poses_after

@@ -17,7 +17,7 @@ from .config import Config
 from .cpu import denormals_flushed
 from .field import FrozenField, SceneField
 from .frames import PreparedFrame, border_mask
-from .geometry import params_to_pose, pose_to_params, rays_to_world, scale_motion
+from .geometry import depth_points_world, params_to_pose, pose_to_params, rays_to_world, scale_motion
 from .keyframes import Keyframe
 from .losses import eslam_losses
 from .observed import ObservedSpace
@@ -102,8 +102,7 @@ class Tracker:
                            observed: ObservedSpace) -> torch.Tensor:
         """The candidate pixels whose depth point lies in observed space, or all of them if that is under half:
         then the frame mostly sees new space, and rays through it still constrain the pose better than few rays."""
-        points = self.dirs_cam[candidates] * depth[candidates, None] @ pose[:3, :3].T + pose[:3, 3]
-        seen = observed.contains(points)
+        seen = observed.contains(depth_points_world(self.dirs_cam[candidates], depth[candidates], pose))
         return candidates[seen] if 2 * int(seen.sum()) >= len(candidates) else candidates
 
 
