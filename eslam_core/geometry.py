@@ -100,6 +100,17 @@ def scale_motion(M: np.ndarray, factor: float) -> np.ndarray:
     return out
 
 
+def interpolate_pose(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
+    """The pose a fraction `t` of the way from `a` to `b`: translation linear, rotation along the geodesic."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.eye(4)
+    turn = Rotation.from_matrix(a[:3, :3].T @ b[:3, :3]).as_rotvec()
+    out[:3, :3] = a[:3, :3] @ Rotation.from_rotvec(t * turn).as_matrix()
+    out[:3, 3] = (1.0 - t) * a[:3, 3] + t * b[:3, 3]
+    return out
+
+
 def relative_motion(T_prev: np.ndarray, T_cur: np.ndarray) -> np.ndarray:
     """Motion from the previous to the current camera, expressed in the previous camera's frame."""
     return np.linalg.inv(T_prev) @ T_cur

@@ -21,7 +21,7 @@ from .config import Config, config_from_dict
 from .cpu import keep_freed_memory
 from .field import SceneField
 from .frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
-from .geometry import depth_points_world
+from .geometry import depth_points_world, interpolate_pose
 from .keyframes import Keyframe, select_window
 from .mapping import Mapper
 from .observed import ObservedSpace
@@ -29,7 +29,7 @@ from .tracking import constant_velocity, make_tracker, time_ratio
 
 log = logging.getLogger("eslam")
 
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
 
 
 @dataclass
@@ -37,9 +37,36 @@ class FrameRecord:
     index: int
     timestamp: float
     reference: int  # position of the keyframe this frame's pose is relative to
-    relative: np.ndarray  # 4x4: pose = keyframes[reference].pose @ relative
+    relative: np.ndarray  # 4x4: pose = keyframes[reference].pose @ relative (before blending, see frame_pose)
     tracking_loss: float
     gt_pose: Optional[np.ndarray]
+    tracked: np.ndarray  # 4x4: the pose when tracked (a keyframe's before mapping refined it)
+
+
+def frame_pose(records: list[FrameRecord], keyframe_records: dict[int, int], keyframe_pose: Callable[[int], np.ndarray],
+               k: int) -> np.ndarray:
+    """The pose of frame `k` given the keyframe poses as mapping has refined them (`keyframe_records`: keyframe
+    position -> its record). A frame moves with its keyframe's correction, blended (by time) into the next
+    keyframe's correction as it nears that keyframe: tracking errors drift smoothly between keyframes, and mapping
+    corrects them at the keyframes only."""
+    r = records[k]
+    own = keyframe_pose(r.reference) @ r.relative
+    start, end = keyframe_records.get(r.reference), keyframe_records.get(r.reference + 1)
+    if start is None or end is None or start == k:
+        return own
+    a, b = records[start], records[end]
+    span = b.timestamp - a.timestamp
+    t = float(np.clip((r.timestamp - a.timestamp) / span, 0.0, 1.0)) if span > 0 else 0.0
+    with_next = keyframe_pose(r.reference + 1) @ np.linalg.inv(b.tracked) @ r.tracked
+    return interpolate_pose(own, with_next, t)
+
+
+def keyframe_positions(records: list[FrameRecord]) -> dict[int, int]:
+    """Keyframe position -> its own record (the first one that refers to it)."""
+    positions: dict[int, int] = {}
+    for k, r in enumerate(records):
+        positions.setdefault(r.reference, k)
+    return positions
 
 
 @dataclass
@@ -67,6 +94,7 @@ class SLAM:
         self.observed_keyframes = 0
         self.keyframes: list[Keyframe] = []
         self.records: list[FrameRecord] = []
+        self.keyframe_records: dict[int, int] = {}  # keyframe position -> its record
         self.points_outside = 0
         self.points_seen = 0
         self._warned_outside = 0.0
@@ -75,8 +103,10 @@ class SLAM:
 
     # ------------------------------------------------------------------------------------------------ trajectory
     def pose(self, k: int) -> np.ndarray:
-        r = self.records[k]
-        return self.keyframes[r.reference].pose.double().numpy() @ r.relative
+        return frame_pose(self.records, self.keyframe_records, self._keyframe_pose, k)
+
+    def _keyframe_pose(self, i: int) -> np.ndarray:
+        return self.keyframes[i].pose.double().numpy()
 
     def poses(self) -> np.ndarray:
         return np.stack([self.pose(k) for k in range(len(self.records))]) if self.records else np.zeros((0, 4, 4))
@@ -109,16 +139,20 @@ class SLAM:
         mapping_loss = float("nan")
         if is_keyframe:
             self._add_keyframe(pf, usable, pose)
-            self._record(pf, len(self.keyframes) - 1, np.eye(4), result.loss)
+            self._record(pf, pose, result.loss, keyframe=True)
             mapping_loss = self._map_current()
         else:
-            ref = len(self.keyframes) - 1
-            rel = np.linalg.inv(self.keyframes[ref].pose.double().numpy()) @ pose.double().numpy()
-            self._record(pf, ref, rel, result.loss)
+            self._record(pf, pose, result.loss, keyframe=False)
         return StepResult(pf.index, self.pose(n), result.loss, is_keyframe, mapping_loss)
 
-    def _record(self, pf: PreparedFrame, ref: int, rel: np.ndarray, loss: float) -> None:
-        self.records.append(FrameRecord(pf.index, pf.timestamp, ref, rel, loss, pf.gt_pose))
+    def _record(self, pf: PreparedFrame, pose: torch.Tensor, loss: float, keyframe: bool) -> None:
+        """Store a tracked frame relative to the newest keyframe (itself, when it is that keyframe)."""
+        ref = len(self.keyframes) - 1
+        tracked = pose.double().numpy()
+        rel = np.eye(4) if keyframe else np.linalg.inv(self._keyframe_pose(ref)) @ tracked
+        if keyframe:
+            self.keyframe_records[ref] = len(self.records)
+        self.records.append(FrameRecord(pf.index, pf.timestamp, ref, rel, loss, pf.gt_pose, tracked))
 
     def _first_frame(self, pf: PreparedFrame) -> StepResult:
         """Start the map from the first frame and map it alone (the warm-up)."""
@@ -138,7 +172,7 @@ class SLAM:
         log.info("map: %d parameters over bound %s", self.field.parameter_count(), np.round(self.bound, 3).tolist())
         pose = torch.from_numpy(pose0).float()
         self._add_keyframe(pf, self._usable_pixels(pf, pose), pose)
-        self._record(pf, 0, np.eye(4), 0.0)
+        self._record(pf, pose, 0.0, keyframe=True)
         return pose0
 
     def _add_keyframe(self, pf: PreparedFrame, usable: torch.Tensor, pose: torch.Tensor) -> None:
@@ -215,7 +249,7 @@ class SLAM:
             "field": self.field.state_dict() if self.field is not None else None,
             "keyframes": [dict(kf.__dict__) for kf in self.keyframes],
             # Tensors, not numpy arrays, so that checkpoints load with torch.load(weights_only=True).
-            "records": [dict(r.__dict__, relative=torch.from_numpy(r.relative),
+            "records": [dict(r.__dict__, relative=torch.from_numpy(r.relative), tracked=torch.from_numpy(r.tracked),
                              gt_pose=None if r.gt_pose is None else torch.from_numpy(r.gt_pose))
                         for r in self.records],
             "points_outside": self.points_outside,
@@ -240,9 +274,10 @@ class SLAM:
                                    else torch.zeros(0, 3))
         if slam.observed is not None:
             slam.observe_mapped(len(slam.keyframes))
-        slam.records = [FrameRecord(**dict(r, relative=r["relative"].numpy(),
+        slam.records = [FrameRecord(**dict(r, relative=r["relative"].numpy(), tracked=r["tracked"].numpy(),
                                            gt_pose=None if r["gt_pose"] is None else r["gt_pose"].numpy()))
                         for r in state["records"]]
+        slam.keyframe_records = keyframe_positions(slam.records)
         slam.points_outside = state["points_outside"]
         slam.points_seen = state["points_seen"]
         slam.rng.bit_generator.state = state["rng"]

@@ -468,14 +468,16 @@ def test_trajectory_mirror_applies_refinements_in_any_order():
         return pose
 
     mirror = TrajectoryMirror()
-    mirror.add(FrameRecord(0, 0.0, 0, np.eye(4), 0.0, None), shifted(1.0), keyframe=True)
-    mirror.add(FrameRecord(1, 0.1, 0, shifted(0.5), 0.1, None), shifted(1.5), keyframe=False)
+    mirror.add(FrameRecord(0, 0.0, 0, np.eye(4), 0.0, None, shifted(1.0)), shifted(1.0), keyframe=True)
+    mirror.add(FrameRecord(1, 0.1, 0, shifted(0.5), 0.1, None, shifted(1.5)), shifted(1.5), keyframe=False)
     mirror.refine({1: shifted(3.0)})  # keyframe 1's refinement arrives before its own record
-    mirror.add(FrameRecord(2, 0.2, 1, np.eye(4), 0.1, None), shifted(2.0), keyframe=True)
-    mirror.refine({0: shifted(2.0)})  # moves frame 1 too: it is stored relative to keyframe 0
+    mirror.add(FrameRecord(2, 0.2, 1, np.eye(4), 0.1, None, shifted(2.0)), shifted(2.0), keyframe=True)
+    mirror.refine({0: shifted(2.0)})  # both keyframes moved by +1: so does frame 1 between them
     timestamps, poses = mirror.trajectory()
     assert np.allclose(timestamps, [0.0, 0.1, 0.2]) and mirror.keyframes == 2
     assert np.allclose(poses[:, 0, 3], [2.0, 2.5, 3.0])
+    mirror.refine({0: shifted(1.0)})  # keyframe 0 back where it was tracked: frame 1, halfway, moves by half of +1
+    assert np.allclose(mirror.trajectory()[1][:, 0, 3], [1.0, 2.0, 3.0])
 
 
 def test_pipelined_tracker_observes_only_what_the_map_is_fitted_to(room_sequence):

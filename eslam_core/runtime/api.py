@@ -24,7 +24,7 @@ import numpy as np
 
 from ..camera import Frame, Intrinsics
 from ..config import Config
-from ..slam import FrameRecord
+from ..slam import FrameRecord, frame_pose
 
 POLICIES = ("offline", "live")
 WORKER_CHOICES = (1, 2)
@@ -164,17 +164,19 @@ class LatencyMeter:
 
 class TrajectoryMirror:
     """A copy of the trajectory that the caller can read at any time without waiting for the SLAM step in progress:
-    each frame relative to its keyframe (as `SLAM` stores it), keyframe poses updated as mapping refines them
-    (a refinement may arrive before the keyframe's own record)."""
+    each frame relative to its keyframe (as `SLAM` stores it, see `frame_pose`), keyframe poses updated as mapping
+    refines them (a refinement may arrive before the keyframe's own record)."""
 
     def __init__(self):
         self.records: list[FrameRecord] = []
+        self.keyframe_records: dict[int, int] = {}
         self.keyframe_poses: dict[int, np.ndarray] = {}
         self.keyframes = 0
 
     def add(self, record: FrameRecord, pose: np.ndarray, keyframe: bool) -> None:
         if keyframe:
             self.keyframe_poses.setdefault(record.reference, np.asarray(pose, dtype=np.float64))
+            self.keyframe_records[record.reference] = len(self.records)
             self.keyframes = max(self.keyframes, record.reference + 1)
         self.records.append(record)
 
@@ -185,7 +187,8 @@ class TrajectoryMirror:
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         if not self.records:
             return np.zeros(0), np.zeros((0, 4, 4))
-        poses = [self.keyframe_poses[r.reference] @ r.relative for r in self.records]
+        poses = [frame_pose(self.records, self.keyframe_records, self.keyframe_poses.__getitem__, k)
+                 for k in range(len(self.records))]
         return np.array([r.timestamp for r in self.records]), np.stack(poses)
 
 

@@ -50,7 +50,7 @@ from ..config import Config
 from ..field import SceneField
 from ..frames import prepare_frame, working_intrinsics
 from ..keyframes import Keyframe
-from ..slam import SLAM, FrameRecord
+from ..slam import SLAM, FrameRecord, keyframe_positions
 from .saving import SavingMixin
 from .api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, TrajectoryMirror, \
     check_frame, check_policy
@@ -127,6 +127,7 @@ def assemble_slam(cfg: Config, intrinsics: Intrinsics, mapper_state: dict, recor
                                kf["depth"][i].clone(), kf["usable"][i].clone(), kf["pose"][i].clone())
                       for i in range(len(kf["frame_index"]))]
     slam.records = [dataclasses.replace(r) for r in records]
+    slam.keyframe_records = keyframe_positions(slam.records)
     slam.rng.bit_generator.state = mapper_state["rng"]
     slam.points_outside, slam.points_seen = points_outside, points_seen
     return slam
@@ -349,8 +350,9 @@ class MultiProcessRuntime(SavingMixin):
         if msg.epoch != self._epoch:
             return  # from before a reset
         if isinstance(msg, TrackedFrame):
+            # The tracker's newest frame has no next keyframe to blend with: msg.pose is the pose as tracked.
             self._mirror.add(FrameRecord(msg.index, msg.timestamp, msg.reference, msg.relative, msg.tracking_loss,
-                                         msg.gt_pose), msg.pose, msg.keyframe)
+                                         msg.gt_pose, msg.pose), msg.pose, msg.keyframe)
             self._updates.append(PoseUpdate(msg.index, msg.timestamp, msg.pose, msg.tracking_loss, msg.keyframe,
                                             msg.latency_s))
             self._tracking_rate.tick(msg.done)

@@ -1,0 +1,50 @@
+"""Frame poses from keyframe poses: each frame follows its keyframe's mapping correction, blended into the next
+keyframe's correction as it nears that keyframe."""
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from eslam_core.geometry import interpolate_pose, rotation_angle_deg
+from eslam_core.slam import FrameRecord, frame_pose, keyframe_positions
+
+
+def pose(x: float, yaw_deg: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix()
+    T[0, 3] = x
+    return T
+
+
+def test_interpolate_pose_follows_the_geodesic():
+    a, b = pose(0.0, 10.0), pose(2.0, 50.0)
+    assert np.allclose(interpolate_pose(a, b, 0.0), a) and np.allclose(interpolate_pose(a, b, 1.0), b)
+    mid = interpolate_pose(a, b, 0.25)
+    assert mid[0, 3] == pytest.approx(0.5)
+    assert rotation_angle_deg(a[:3, :3].T @ mid[:3, :3]) == pytest.approx(10.0)
+    assert rotation_angle_deg(mid[:3, :3].T @ b[:3, :3]) == pytest.approx(30.0)
+
+
+def test_drift_between_corrected_keyframes_is_removed():
+    """Tracking drifts 1 cm and 0.5 degree per frame; mapping puts keyframes 0 (frame 0) and 1 (frame 4) back on
+    the true trajectory. Linear drift is then removed from the frames in between, not only from the keyframes."""
+    truth = [pose(0.1 * k, 2.0 * k) for k in range(7)]
+    tracked = [pose(0.1 * k + 0.01 * k, 2.5 * k) for k in range(7)]
+    records, keyframe_pose = [], {}
+    for k in range(7):
+        ref = 0 if k < 4 else 1
+        if k in (0, 4):
+            keyframe_pose[ref] = tracked[k]
+        relative = np.linalg.inv(keyframe_pose[ref]) @ tracked[k]
+        records.append(FrameRecord(k, 0.1 * k, ref, relative, 0.0, None, tracked[k]))
+    keyframe_pose.update({0: truth[0], 1: truth[4]})  # mapping's corrections
+    keyframe_records = keyframe_positions(records)
+    assert keyframe_records == {0: 0, 1: 4}
+    poses = [frame_pose(records, keyframe_records, keyframe_pose.__getitem__, k) for k in range(7)]
+    for k in range(5):
+        rigid = keyframe_pose[records[k].reference] @ records[k].relative  # moved with its own keyframe only
+        error = np.linalg.norm(poses[k][:3, 3] - truth[k][:3, 3])
+        # (not zero: a world-frame correction of the heading also swings the position a little)
+        assert error < 0.004 and error <= 0.3 * np.linalg.norm(rigid[:3, 3] - truth[k][:3, 3]) + 1e-9, k
+        assert rotation_angle_deg(poses[k][:3, :3].T @ truth[k][:3, :3]) < 0.01, k
+    # After the newest keyframe there is nothing to blend with: those frames move with it rigidly.
+    assert np.allclose(poses[5], truth[4] @ np.linalg.inv(tracked[4]) @ tracked[5])
