@@ -2,7 +2,7 @@
 keyframe's correction as it nears that keyframe."""
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 from eslam_core.geometry import interpolate_pose, rotation_angle_deg
 from eslam_core.slam import FrameRecord, frame_pose, keyframe_positions
@@ -22,6 +22,14 @@ def test_interpolate_pose_follows_the_geodesic():
     assert mid[0, 3] == pytest.approx(0.5)
     assert rotation_angle_deg(a[:3, :3].T @ mid[:3, :3]) == pytest.approx(10.0)
     assert rotation_angle_deg(mid[:3, :3].T @ b[:3, :3]) == pytest.approx(30.0)
+    rng = np.random.default_rng(0)
+    for _ in range(20):  # any axis, angles up to a half turn: scipy's slerp agrees
+        ra, rb = Rotation.random(2, random_state=rng)
+        a, b = np.eye(4), np.eye(4)
+        a[:3, :3], b[:3, :3] = ra.as_matrix(), rb.as_matrix()
+        t = rng.uniform()
+        expected = Slerp([0, 1], Rotation.concatenate([ra, rb]))([t]).as_matrix()[0]
+        assert np.allclose(interpolate_pose(a, b, t)[:3, :3], expected, atol=1e-6)
 
 
 def test_drift_between_corrected_keyframes_is_removed():
