@@ -91,35 +91,29 @@ def depth_points_world(dirs_cam: torch.Tensor, depth: torch.Tensor, c2w: torch.T
 
 
 def scale_motion(M: np.ndarray, factor: float) -> np.ndarray:
-    """A rigid motion repeated `factor` times (rotation angle and translation scaled): velocity x time."""
-    from scipy.spatial.transform import Rotation
-
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(M[:3, :3]).as_rotvec() * factor).as_matrix()
-    out[:3, 3] = M[:3, 3] * factor
-    return out
-
-
-def interpolate_pose(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
-    """The pose a fraction `t` of the way from `a` to `b`: translation linear, rotation along the geodesic.
+    """A rigid motion repeated `factor` times (rotation angle and translation scaled): velocity x time.
     (Rodrigues' formula in numpy: scipy's Rotation costs ~20x more, and a trajectory calls this once per frame.)"""
-    turn = a[:3, :3].T @ b[:3, :3]
-    angle = float(np.arccos(np.clip((np.trace(turn) - 1.0) / 2.0, -1.0, 1.0)))
     out = np.eye(4)
-    out[:3, 3] = (1.0 - t) * a[:3, 3] + t * b[:3, 3]
+    out[:3, 3] = M[:3, 3] * factor
+    R = M[:3, :3]
+    angle = float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
     if angle < 1e-9:
-        out[:3, :3] = a[:3, :3]
         return out
     if angle > np.pi - 1e-3:  # the axis is ill-defined from the skew part near a half turn
         from scipy.spatial.transform import Rotation
 
-        out[:3, :3] = a[:3, :3] @ Rotation.from_rotvec(t * Rotation.from_matrix(turn).as_rotvec()).as_matrix()
+        out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(R).as_rotvec() * factor).as_matrix()
         return out
-    axis = np.array([turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]]) / (2 * np.sin(angle))
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2 * np.sin(angle))
     K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    theta = t * angle
-    out[:3, :3] = a[:3, :3] @ (np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K)
+    theta = factor * angle
+    out[:3, :3] = np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
     return out
+
+
+def interpolate_pose(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
+    """The pose a fraction `t` of the way from `a` to `b`: translation linear, rotation along the geodesic."""
+    return a @ scale_motion(relative_motion(a, b), t)
 
 
 def relative_motion(T_prev: np.ndarray, T_cur: np.ndarray) -> np.ndarray:

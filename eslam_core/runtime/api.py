@@ -171,13 +171,15 @@ class TrajectoryMirror:
         self.records: list[FrameRecord] = []
         self.keyframe_records: dict[int, int] = {}
         self.keyframe_poses: dict[int, np.ndarray] = {}
-        self.keyframes = 0
+
+    @property
+    def keyframes(self) -> int:
+        return len(self.keyframe_records)
 
     def add(self, record: FrameRecord, pose: np.ndarray, keyframe: bool) -> None:
         if keyframe:
             self.keyframe_poses.setdefault(record.reference, np.asarray(pose, dtype=np.float64))
             self.keyframe_records[record.reference] = len(self.records)
-            self.keyframes = max(self.keyframes, record.reference + 1)
         self.records.append(record)
 
     def refine(self, poses: dict) -> None:
