@@ -173,8 +173,9 @@ def main() -> int:
                     help="pipelined: keyframes that may wait before older ones are merged into the newest one's "
                          "mapping step (default: none merged, every keyframe gets its step as in lock-step)")
     ap.add_argument("--catch-up-iterations", type=int, default=None,
-                    help="pipelined: once a newer keyframe waits, a mapping step ends after this many iterations "
-                         "(default: never, every step runs all its iterations as in lock-step)")
+                    help="pipelined: once newer keyframes wait, a mapping step ends after this many iterations "
+                         "divided by their number (default: never, every step runs all its iterations as in "
+                         "lock-step)")
     ap.add_argument("--no-lend", action="store_true", help="pipelined: an idle worker keeps its threads")
     ap.add_argument("--publish-every", type=int, default=5,
                     help="pipelined: mapping iterations between mid-step map publications (default 5; larger: the "

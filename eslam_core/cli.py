@@ -131,8 +131,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="offline: every frame in order (default); live: frames fed at the data set's frame rate, "
                         "the tracker skips to the newest when behind (dropped frames are counted)")
     r.add_argument("--catch-up-iterations", type=int, default=None, metavar="N",
-                   help="--workers 2: once a newer keyframe waits, a mapping step ends after N iterations (default: "
-                        "every step runs all its iterations)")
+                   help="--workers 2: once newer keyframes wait, a mapping step ends after N iterations divided by "
+                        "their number, so that the mapper keeps up with the tracker (default: every step runs all "
+                        "its iterations)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_run)
 

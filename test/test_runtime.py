@@ -498,18 +498,23 @@ def test_pipelined_tracker_observes_only_what_the_map_is_fitted_to(room_sequence
 
 
 def test_mapper_catches_up_only_when_a_newer_keyframe_waits(monkeypatch):
-    """catch_up_iterations: a mapping step may end early once it has had its minimum and a newer keyframe is
-    pending or still in the queue."""
+    """catch_up_iterations: a mapping step may end early once a newer keyframe is pending or still in the queue
+    and the step has had its share of the budget (divided among the waiting keyframes, so that a mapper that fell
+    behind by several keyframes catches up)."""
     monkeypatch.setattr(workers, "register_optimizer_step_post_hook", lambda hook: None)
     ch = workers.Channels(None, queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), HealthBoard(), Control(),
                           None)
     setup = workers.WorkerSetup(load_config("demo"), Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0), "offline", 1, os.getpid(),
-                                logging.INFO, catch_up_iterations=3)
+                                logging.INFO, catch_up_iterations=4)
     mapper = workers.MapperWorker(setup, ch)
     assert not mapper._behind(5)  # nothing newer
     ch.board.add(Counter.KEYFRAMES)  # the tracker queued one
-    assert not mapper._behind(2) and mapper._behind(3)
+    assert not mapper._behind(3) and mapper._behind(4)
     ch.board.add(Counter.KEYFRAMES_RECEIVED)  # taken off the queue...
-    assert not mapper._behind(3)
+    assert not mapper._behind(4)
     mapper.pending.append(object())  # ...into pending
-    assert mapper._behind(3)
+    assert not mapper._behind(3) and mapper._behind(4)
+    ch.board.add(Counter.KEYFRAMES)  # two waiting: half the budget each
+    assert not mapper._behind(1) and mapper._behind(2)
+    mapper.pending.extend([object(), object()])  # four waiting (one still queued): one iteration is its share
+    assert mapper._behind(1)

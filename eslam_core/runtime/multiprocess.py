@@ -140,8 +140,9 @@ class MultiProcessRuntime(SavingMixin):
         """threads: torch threads per worker; capacity: frames in the input ring; publish_every: optimiser
         iterations between mid-step map publications; lend_threads: an idle worker's threads go to the busy one;
         keyframe_backlog: keyframes that may wait for the mapper before the older ones are merged into the newest
-        one's step (None = every keyframe gets a step; the live policy always uses 0); catch_up_iterations: once a
-        newer keyframe waits, a mapping step ends after this many iterations (None = never). See workers.py."""
+        one's step (None = every keyframe gets a step; the live policy always uses 0); catch_up_iterations: once
+        newer keyframes wait, a mapping step ends after this many iterations divided by their number (None = never).
+        See workers.py."""
         self.cfg = cfg
         self.intrinsics = intrinsics
         self.policy = check_policy(policy)

@@ -11,7 +11,8 @@ Mapper: owns the `SceneField`. It starts the map from keyframe 0 (bound chosen b
 runs the warm-up, then one mapping step per keyframe (offline policy). When keyframes queue up beyond
 `keyframe_backlog` (0 under the live policy; unlimited by default offline), the older waiting ones join the window
 of the newest as its "previous keyframes" instead of getting a step of their own, so the map keeps up with the camera.
-After each step, and
+With `catch_up_iterations`, every keyframe keeps its step, but a step ends early once newer keyframes wait, the
+sooner the more of them (`_behind`): the mapper stays within about a keyframe of the tracker. After each step, and
 every `publish_every` optimiser iterations during a step, it publishes the parameters into the shared map. The
 publishing and the checks for stop / reset / snapshot requests happen in an optimiser post-step hook, so that
 `Mapper.map` needs no changes and a long step (the warm-up) still reacts within one iteration.
@@ -176,8 +177,9 @@ class WorkerSetup:
     # Keyframes allowed to wait while the mapper maps one; beyond that the older ones join the window of the newest
     # without a step of their own. None: every keyframe gets its step (offline); the live policy uses 0.
     keyframe_backlog: Optional[int] = None
-    # Once a newer keyframe waits, the current mapping step ends after this many iterations (None: never; the step
-    # runs all of them), so that a mapper slower than the tracker spends its time on the newest keyframes.
+    # Once newer keyframes wait, the current mapping step ends after this many iterations divided by their number
+    # (None: never; the step runs all of them), so that a mapper slower than the tracker stays within about one
+    # keyframe of it and spends its time on the newest keyframes.
     catch_up_iterations: Optional[int] = None
 
 
@@ -625,9 +627,12 @@ class MapperWorker:
             self.publishing_mid_step = False
 
     def _behind(self, iterations: int) -> bool:
-        """A newer keyframe waits (received, or still in the queue) and the step has had its minimum."""
+        """Newer keyframes wait (received, or still in the queue) and the step has had its share of the catch-up
+        budget: `catch_up_iterations` divided among the keyframes waiting, so that a mapper that has fallen behind
+        by several keyframes catches up instead of lagging further behind with every step."""
         queued = self.ch.board.get(Counter.KEYFRAMES) - self.ch.board.get(Counter.KEYFRAMES_RECEIVED)
-        return iterations >= self.setup.catch_up_iterations and (len(self.pending) > 0 or queued > 0)
+        waiting = len(self.pending) + queued
+        return waiting > 0 and iterations * waiting >= self.setup.catch_up_iterations
 
     def _publish(self, step_done: bool = True) -> int:
         # In the middle of a step the newest keyframe is not fitted yet.
