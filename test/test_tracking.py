@@ -7,7 +7,7 @@ from eslam_core.bounds import grow_to_multiple
 from eslam_core.config import load_config
 from eslam_core.field import SceneField
 from eslam_core.frames import pixel_directions_table, prepare_frame
-from eslam_core.geometry import rotation_angle_deg
+from eslam_core.geometry import depth_points_world, rotation_angle_deg
 from eslam_core.keyframes import Keyframe
 from eslam_core.mapping import Mapper
 from eslam_core.tracking import Tracker, constant_velocity, outlier_mask
@@ -131,7 +131,7 @@ def test_observed_only_draws_rays_from_observed_space(fitted_map, room_sequence)
     pose = torch.from_numpy(frame.gt_pose).float()
     depth = frame.depth.reshape(-1)
     candidates = torch.nonzero(depth > 0).squeeze(1)
-    points = dirs[candidates] * depth[candidates, None] @ pose[:3, :3].T + pose[:3, 3]
+    points = depth_points_world(dirs[candidates], depth[candidates], pose)
     column = candidates % ds.intrinsics.width
     left = column < 0.75 * ds.intrinsics.width
     tracker = Tracker(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width)

@@ -15,7 +15,7 @@ With `catch_up_iterations`, every keyframe keeps its step, but a step ends early
 sooner the more of them (`_behind`): the mapper stays within about a keyframe of the tracker. After each step, and
 every `publish_every` optimiser iterations during a step, it publishes the parameters into the shared map. The
 publishing and the checks for stop / reset / snapshot requests happen in an optimiser post-step hook, so that
-`Mapper.map` needs no changes and a long step (the warm-up) still reacts within one iteration.
+`Mapper.map` knows nothing of them and a long step (the warm-up) still reacts within one iteration.
 
 Cores: each worker owns `threads` torch threads (the machine's cores split between the two). While one worker is
 idle (the tracker during the warm-up or without frames, the mapper without keyframes), its threads are lent to the
