@@ -416,6 +416,13 @@ class Listener:
     def count(self, key: str) -> int:
         return int(self.health().get(key, 0))
 
+    def connect(self, process) -> bool:
+        """Until the node's publishers are discovered and its status reaches us: the node's topics are volatile,
+        so poses published before the match would be lost to this listener (a short count, now and then)."""
+        topics = [f"/slam_node/{t}" for t in ("pose", "odom", "path", "mesh", "status")]
+        return self.spin_until(lambda: self.status and all(self.node.count_publishers(t) for t in topics), 60.0,
+                               process)
+
     def spin_until(self, condition, timeout: float, process=None) -> bool:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -459,6 +466,7 @@ def test_end_to_end_bag_replay_through_the_node(room_sequence, node_process, tmp
     bag = write_bag(sequence, tmp_path / "room.mcap").path
     listener = Listener()
     try:
+        assert listener.connect(process), "the node's topics never reached the listener"
         player = subprocess.run([sys.executable, "-m", "eslam_core", "bag", "play", str(bag), "--wait", "60"],
                                 env=_ros_env(_domain()), cwd=REPO, capture_output=True, text=True, timeout=120)
         assert player.returncode == 0, player.stderr
