@@ -1,6 +1,6 @@
 from glob import glob
 
-from setuptools import setup
+from setuptools import find_packages, setup
 
 setup(
     name="eslam_ros",
@@ -8,8 +8,7 @@ setup(
     description="ESLAM dense RGB-D SLAM (multi-scale feature planes + TSDF) as a library, CLI and ROS 2 node",
     license="MIT",
     python_requires=">=3.10",
-    packages=["eslam_core", "eslam_core.datasets", "eslam_core.evaluation", "eslam_core.presets", "eslam_core.runtime",
-              "eslam_ros"],
+    packages=find_packages(include=["eslam_core", "eslam_core.*", "eslam_ros"]) + ["eslam_core.presets"],
     # The YAML presets live in config/ (where ROS users expect them) and are also installed inside the package so
     # that `--config icl` works after a plain pip install.
     package_dir={"eslam_core.presets": "config"},

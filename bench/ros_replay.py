@@ -104,7 +104,7 @@ def main() -> int:
 
     if args.data is None:
         from eslam_core.demo import default_cache
-        from eslam_core.synthetic import ensure_scene
+        from eslam_core.datasets.synthetic import ensure_scene
 
         args.data, args.kind = ensure_scene(default_cache(), n_frames=60, width=320, height=240), "tum"
     ds = open_dataset(args.data, args.kind)

@@ -154,7 +154,7 @@ def run_child(args, mode: str) -> Optional[dict]:
 
 def synthetic_room(size: str, n: int) -> Path:
     from eslam_core.demo import default_cache, parse_size
-    from eslam_core.synthetic import ensure_scene
+    from eslam_core.datasets.synthetic import ensure_scene
 
     w, h = parse_size(size)
     return ensure_scene(default_cache(), n_frames=n, width=w, height=h, seed=0)

@@ -32,15 +32,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from eslam_core.config import load_config  # noqa: E402
 from eslam_core.cpu import denormals_flushed  # noqa: E402
 from eslam_core.datasets import open_dataset  # noqa: E402
-from eslam_core.field import FrozenField  # noqa: E402
+from eslam_core.representation.field import FrozenField  # noqa: E402
 from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics  # noqa: E402
 from eslam_core.geometry import params_to_pose, pose_to_params  # noqa: E402
-from eslam_core.keyframes import Keyframe  # noqa: E402
-from eslam_core.losses import eslam_losses  # noqa: E402
-from eslam_core.mapping import Mapper  # noqa: E402
-from eslam_core.rendering import alpha_from_sdf, render_weights, sample_depths  # noqa: E402
+from eslam_core.mapping.keyframes import Keyframe  # noqa: E402
+from eslam_core.rendering.losses import eslam_losses  # noqa: E402
+from eslam_core.mapping.mapper import Mapper  # noqa: E402
+from eslam_core.rendering.volume import alpha_from_sdf, render_weights, sample_depths  # noqa: E402
 from eslam_core.slam import SLAM  # noqa: E402
-from eslam_core.tracking import make_tracker  # noqa: E402
+from eslam_core.tracking.render_tracker import make_tracker  # noqa: E402
 
 # The official implementation on this machine kind (2 cores, CPU), from ../shared/reference/eslam_facts.md.
 OFFICIAL = {"tracking_iteration_s": (0.27, 0.45), "mapping_iteration_s": (1.6, 2.4)}
@@ -76,7 +76,7 @@ def staged_iteration(field, origins, dirs, d_gt, rgb_gt, cfg, weights, optim) ->
         rgb = field.appearance_decoder(fa).reshape(z.shape + (3,))
     sw.lap("decoders")
     w = render_weights(alpha_from_sdf(sdf, field.beta))
-    from eslam_core.rendering import RenderOutput
+    from eslam_core.rendering.volume import RenderOutput
 
     out = RenderOutput(z, sdf, w, (w * z).sum(-1), (w[..., None] * rgb).sum(-2))
     sw.lap("rendering")
@@ -209,7 +209,7 @@ def main() -> int:
     args = ap.parse_args()
 
     if args.data is None:
-        from eslam_core.synthetic import ensure_scene
+        from eslam_core.datasets.synthetic import ensure_scene
 
         args.data = ensure_scene(Path.home() / ".cache" / "eslam" / "scenes", n_frames=60, width=640, height=480)
         kind = "tum"

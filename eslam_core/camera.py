@@ -57,6 +57,9 @@ class Frame:
     rgb: np.ndarray  # H x W x 3 uint8
     depth: np.ndarray  # H x W float32 metres, 0 = missing
     pose: Optional[np.ndarray] = None  # 4x4 float64 camera-to-world (OpenCV axes), None = no ground truth
+    # 4x4 float64 camera-to-odom from an external odometry (wheel, VIO) at this frame's stamp, OpenCV axes; its
+    # motion between frames is the tracker's prior (and, with tracking.mode "external", the pose). None = none.
+    odom_pose: Optional[np.ndarray] = None
 
 
 def backproject(depth: np.ndarray, intr: Intrinsics, pose: Optional[np.ndarray] = None, stride: int = 1) -> np.ndarray:

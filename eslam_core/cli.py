@@ -9,7 +9,7 @@ from typing import Optional, Sequence
 
 import yaml
 
-from .camera import Intrinsics
+from eslam_core.camera import Intrinsics
 
 log = logging.getLogger("eslam")
 
@@ -46,15 +46,15 @@ def _camera_override(cfg) -> Optional[Intrinsics]:
 
 
 def open_configured_dataset(cfg, data: Path, frames: tuple, stride: int):
-    from .datasets import open_dataset
+    from eslam_core.datasets import open_dataset
 
     ds = open_dataset(data, cfg.dataset.kind, intrinsics=_camera_override(cfg), depth_scale=cfg.camera.depth_scale)
     return ds.subset(frames[0], frames[1], stride)
 
 
 def cmd_run(args) -> int:
-    from .config import load_config
-    from .runner import run_sequence
+    from eslam_core.config import load_config
+    from eslam_core.runner import run_sequence
 
     if args.catch_up_iterations is not None and args.workers != 2:
         raise ValueError("--catch-up-iterations applies to the pipelined runtime: add --workers 2 (lock-step maps "
@@ -74,8 +74,8 @@ def cmd_run(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from .config import load_config
-    from .demo import run_demo
+    from eslam_core.config import load_config
+    from eslam_core.demo import run_demo
 
     cfg = load_config("demo", parse_overrides(args.set))
     run_demo(cfg, Path(args.out), n_frames=args.frames, size=args.size, cache=args.cache, progress=not args.quiet)
@@ -83,8 +83,8 @@ def cmd_demo(args) -> int:
 
 
 def cmd_mesh(args) -> int:
-    from .export import load_checkpoint, map_mesh
-    from .mesh import save_ply
+    from eslam_core.outputs.export import load_checkpoint, map_mesh
+    from eslam_core.outputs.mesh import save_ply
 
     slam = load_checkpoint(Path(args.checkpoint))
     out = Path(args.out) if args.out else Path(args.checkpoint).with_name(f"mesh_{args.resolution:g}.ply")
@@ -94,7 +94,7 @@ def cmd_mesh(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from .evaluation.cli import run_eval
+    from eslam_core.evaluation.cli import run_eval
 
     return run_eval(args)
 
@@ -153,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.set_defaults(func=cmd_mesh)
 
     try:
-        from .evaluation.cli import add_eval_arguments
+        from eslam_core.evaluation.cli import add_eval_arguments
     except ImportError:  # evaluation extras missing: the other commands still work
         add_eval_arguments = None
     if add_eval_arguments is not None:
@@ -180,7 +180,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except RuntimeError as e:
-        from .runtime import RuntimeCrashed
+        from eslam_core.runtime import RuntimeCrashed
 
         if not isinstance(e, RuntimeCrashed):
             raise

@@ -132,6 +132,9 @@ class TrackingConfig:
     # "render": the paper's tracker, Adam on the rendering losses. "sdf": Gauss-Newton alignment of the
     # back-projected depth to the map's SDF (one SDF query per pixel instead of a rendered ray; the `fast` preset).
     method: str = "render"
+    # "track": every frame is tracked against the map. "external": frames take their pose from the external
+    # odometry (Frame.odom_pose, expressed in the map frame by the first frame) and are not tracked: mapping only.
+    mode: str = "track"
     iterations: int = 8
     rays: int = 2000
     lr_rotation: float = 0.001
@@ -155,6 +158,8 @@ class TrackingConfig:
 
     def validate(self, check) -> None:
         check(self.method in ("render", "sdf"), "tracking.method", "must be 'render' or 'sdf'")
+        check(self.mode in ("track", "external"), "tracking.mode",
+              "must be 'track' or 'external' (poses from external odometry, mapping only)")
         check(self.huber > 0, "tracking.huber", "must be positive (metres)")
         check(self.color_huber > 0, "tracking.color_huber", "must be positive (grey level)")
         check(self.color_weight >= 0, "tracking.color_weight", "must be >= 0 (0 disables the map's colour term)")

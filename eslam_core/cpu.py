@@ -19,7 +19,7 @@ from contextlib import contextmanager
 
 import torch
 
-from .native import load_kernel
+from eslam_core.native import load_kernel
 
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters
 KEEP_BYTES = 1 << 30

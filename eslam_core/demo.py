@@ -8,12 +8,12 @@ from typing import Optional
 import numpy as np
 import trimesh
 
-from .config import Config
-from .culling import cull_mesh
-from .datasets import RGBDDataset, open_dataset
-from .evaluation.reconstruction import reconstruction_metrics
-from .runner import RunSummary, run_sequence
-from .synthetic import ensure_scene
+from eslam_core.config import Config
+from eslam_core.outputs.culling import cull_mesh
+from eslam_core.datasets import RGBDDataset, open_dataset
+from eslam_core.evaluation.reconstruction import reconstruction_metrics
+from eslam_core.runner import RunSummary, run_sequence
+from eslam_core.datasets.synthetic import ensure_scene
 
 
 def default_cache() -> Path:

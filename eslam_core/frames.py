@@ -8,8 +8,8 @@ import numpy as np
 import torch
 from PIL import Image
 
-from .camera import Frame, Intrinsics
-from .config import CameraConfig
+from eslam_core.camera import Frame, Intrinsics
+from eslam_core.config import CameraConfig
 
 
 @dataclass

@@ -20,13 +20,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .config import Config, save_config
-from .datasets import RGBDDataset
-from .evaluation.trajectory import ate
-from .export import estimated_trajectory, ground_truth_trajectory, load_checkpoint, map_mesh, save_checkpoint, \
+from eslam_core.config import Config, save_config
+from eslam_core.datasets import RGBDDataset
+from eslam_core.evaluation.trajectory import ate
+from eslam_core.outputs.export import estimated_trajectory, ground_truth_trajectory, load_checkpoint, map_mesh, save_checkpoint, \
     write_trajectories
-from .mesh import EmptyMeshError, save_ply
-from .slam import SLAM
+from eslam_core.outputs.mesh import EmptyMeshError, save_ply
+from eslam_core.slam import SLAM
 
 log = logging.getLogger("eslam")
 
@@ -170,7 +170,7 @@ def run_with_runtime(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_l
                      policy: str, options: dict) -> RunSummary:
     """`run_sequence` through a runtime: frames are submitted as fast as they load (offline policy) or at the data
     set's frame rate (live policy), the progress bar follows the polled poses."""
-    from .runtime import make_runtime
+    from eslam_core.runtime import make_runtime
 
     if resume is not None:
         raise ValueError("--resume continues a lock-step run only: use --workers 1 with --resume "

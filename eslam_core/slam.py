@@ -15,17 +15,17 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from .bounds import estimate_bound, grow_to_multiple, outside_mask
-from .camera import Frame, Intrinsics
-from .config import Config, config_from_dict
-from .cpu import keep_freed_memory
-from .field import SceneField
-from .frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
-from .geometry import depth_points_world, interpolate_pose
-from .keyframes import Keyframe, select_window
-from .mapping import Mapper
-from .observed import ObservedSpace
-from .tracking import constant_velocity, make_tracker, time_ratio
+from eslam_core.mapping.extent import estimate_bound, grow_to_multiple, outside_mask
+from eslam_core.camera import Frame, Intrinsics
+from eslam_core.config import Config, config_from_dict
+from eslam_core.cpu import keep_freed_memory
+from eslam_core.representation.field import SceneField
+from eslam_core.frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
+from eslam_core.geometry import depth_points_world, interpolate_pose
+from eslam_core.mapping.keyframes import Keyframe, select_window
+from eslam_core.mapping.mapper import Mapper
+from eslam_core.mapping.observed import ObservedSpace
+from eslam_core.tracking.render_tracker import constant_velocity, make_tracker, time_ratio
 
 log = logging.getLogger("eslam")
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from eslam_core.datasets import open_dataset
-from eslam_core.synthetic import generate_scene
+from eslam_core.datasets.synthetic import generate_scene
 
 
 @pytest.fixture(scope="session")

@@ -15,8 +15,8 @@ import pytest
 import trimesh
 
 from eslam_core.camera import Intrinsics
-from eslam_core.culling import CullingError, cull_mesh, keep_visible_faces, visible_mask
-from eslam_core.raycast import render_depth
+from eslam_core.outputs.culling import CullingError, cull_mesh, keep_visible_faces, visible_mask
+from eslam_core.rendering.raycast import render_depth
 
 INTR = Intrinsics(width=40, height=30, fx=20.0, fy=20.0, cx=19.5, cy=14.5)
 NI, NJ = 16, 11

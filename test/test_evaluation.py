@@ -42,7 +42,7 @@ from eslam_core.evaluation.trajectory import (
     umeyama_alignment,
     write_tum,
 )
-from eslam_core.raycast import render_depth
+from eslam_core.rendering.raycast import render_depth
 
 # ---------------------------------------------------------------------------------------------------------------
 # Helpers

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from eslam_core.config import load_config
-from eslam_core.field import FrozenField, SceneField
+from eslam_core.representation.field import FrozenField, SceneField
 from eslam_core.native import load_kernel
 
 BOUND = np.array([[-1.0, -0.5, -0.3], [1.4, 1.42, 0.9]])

@@ -9,7 +9,7 @@ import pytest
 import torch
 import trimesh
 
-from eslam_core.mesh import (
+from eslam_core.outputs.mesh import (
     EmptyMeshError,
     GridTooLargeError,
     MeshSettings,

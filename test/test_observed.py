@@ -2,7 +2,7 @@
 import numpy as np
 import torch
 
-from eslam_core.observed import ObservedSpace
+from eslam_core.mapping.observed import ObservedSpace
 
 
 def test_points_near_observed_surface_are_inside_and_far_ones_are_not():
@@ -34,7 +34,7 @@ def test_adding_more_surface_grows_observed_space():
 def test_growing_by_one_voxel_equals_a_3x3x3_max_pool():
     import torch.nn.functional as F
 
-    from eslam_core.observed import grow_by_one_voxel
+    from eslam_core.mapping.observed import grow_by_one_voxel
 
     g = torch.Generator().manual_seed(0)
     grid = torch.rand(17, 9, 12, generator=g) > 0.97

@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from eslam_core.camera import Intrinsics
-from eslam_core.photometric import Reference, grey_pyramid, photometric_residuals
-from eslam_core.sdf_tracking import pyramid_level
+from eslam_core.tracking.photometric import Reference, grey_pyramid, photometric_residuals
+from eslam_core.tracking.sdf_tracker import pyramid_level
 
 INTR = Intrinsics(width=160, height=120, fx=150.0, fy=150.0, cx=79.5, cy=59.5)
 PLANE_Z = 2.0  # the reference camera looks at a textured wall, fronto-parallel at this depth

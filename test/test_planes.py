@@ -5,7 +5,7 @@ import torch
 import torch.nn.functional as F
 
 from eslam_core.native import load_kernel
-from eslam_core.planes import PLANE_AXES, FeaturePlanes, reference_lookup
+from eslam_core.representation.planes import PLANE_AXES, FeaturePlanes, reference_lookup
 
 BOUND = np.array([[-1.0, -0.5, -0.3], [1.4, 1.42, 0.9]])
 

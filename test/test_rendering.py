@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from eslam_core.config import RenderConfig
-from eslam_core.losses import sdf_losses
-from eslam_core.rendering import alpha_from_sdf, render_rays, render_weights
+from eslam_core.rendering.losses import sdf_losses
+from eslam_core.rendering.volume import alpha_from_sdf, render_rays, render_weights
 
 T = 0.06
 

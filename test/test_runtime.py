@@ -23,8 +23,8 @@ import torch
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import load_config
 from eslam_core.evaluation.trajectory import Trajectory, ate
-from eslam_core.export import load_checkpoint, map_mesh
-from eslam_core.field import SceneField
+from eslam_core.outputs.export import load_checkpoint, map_mesh
+from eslam_core.representation.field import SceneField
 from eslam_core.slam import FrameRecord
 from eslam_core.runtime import RuntimeCrashed, RuntimeSetupError, make_runtime
 from eslam_core.runtime.api import RateMeter, TrajectoryMirror

@@ -10,8 +10,8 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 from eslam_core.cli import main
 from eslam_core.config import load_config
 from eslam_core.demo import mesh_scores
-from eslam_core.export import load_checkpoint, map_mesh
-from eslam_core.keyframes import Keyframe
+from eslam_core.outputs.export import load_checkpoint, map_mesh
+from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.runner import run_sequence
 
 FAST = {"mapping": {"first_iterations": 200}, "mesh": {"resolution": 0.03}}
@@ -123,7 +123,7 @@ def test_joint_pose_switch(room_sequence, joint_poses):
 def test_diverged_tracking_keeps_the_prediction(room_sequence, caplog):
     """A tracker that returns a non-finite pose must not end the run with an unwritable trajectory."""
     from eslam_core.slam import SLAM
-    from eslam_core.tracking import TrackingResult
+    from eslam_core.tracking.render_tracker import TrackingResult
 
     cfg = load_config("demo", {"mapping": {"first_iterations": 10, "iterations": 2}, "tracking": {"iterations": 2}})
     slam = SLAM(cfg, room_sequence.intrinsics)
@@ -168,7 +168,7 @@ def test_mapping_draws_only_usable_pixels(usable_fraction):
     """Rejection sampling for the usual mostly-usable keyframe, a full pass for a sparse one: same answer."""
     from eslam_core.frames import pixel_directions_table
     from eslam_core.camera import Intrinsics
-    from eslam_core.mapping import Mapper
+    from eslam_core.mapping.mapper import Mapper
 
     cfg = load_config("demo", {"mapping": {"border": 5}})
     intr = Intrinsics(width=80, height=60, fx=70.0, fy=70.0, cx=39.5, cy=29.5)

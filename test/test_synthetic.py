@@ -12,8 +12,8 @@ from PIL import Image
 from scipy import ndimage
 
 from eslam_core.camera import backproject
-from eslam_core.raycast import render_depth
-from eslam_core.synthetic import (
+from eslam_core.rendering.raycast import render_depth
+from eslam_core.datasets.synthetic import (
     PART_NAMES,
     WALL_PARTS,
     SensorModel,

@@ -3,14 +3,14 @@ import numpy as np
 import pytest
 import torch
 
-from eslam_core.bounds import grow_to_multiple
+from eslam_core.mapping.extent import grow_to_multiple
 from eslam_core.config import load_config
-from eslam_core.field import SceneField
+from eslam_core.representation.field import SceneField
 from eslam_core.frames import pixel_directions_table, prepare_frame
 from eslam_core.geometry import depth_points_world, rotation_angle_deg
-from eslam_core.keyframes import Keyframe
-from eslam_core.mapping import Mapper
-from eslam_core.tracking import Tracker, constant_velocity, outlier_mask
+from eslam_core.mapping.keyframes import Keyframe
+from eslam_core.mapping.mapper import Mapper
+from eslam_core.tracking.render_tracker import Tracker, constant_velocity, outlier_mask
 
 
 def axis_angle(axis, deg):
@@ -80,7 +80,7 @@ def test_outlier_mask_drops_large_depth_errors():
 def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_weight, with_keyframe):
     """The fast Gauss-Newton alignment (depth only, with the map's colour, with the keyframe's images) converges
     from 3 cm / 3 degrees too."""
-    from eslam_core.sdf_tracking import SDFTracker
+    from eslam_core.tracking.sdf_tracker import SDFTracker
 
     cfg, field, dirs = fitted_map
     cfg.tracking.iterations = 15
@@ -106,7 +106,7 @@ def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_we
 
 
 def test_constant_velocity_scales_with_the_time_gap():
-    from eslam_core.tracking import time_ratio
+    from eslam_core.tracking.render_tracker import time_ratio
 
     a, b = np.eye(4), np.eye(4)
     b[:3, :3] = axis_angle([0, 1, 0], 1.0)
@@ -123,7 +123,7 @@ def test_constant_velocity_scales_with_the_time_gap():
 def test_observed_only_draws_rays_from_observed_space(fitted_map, room_sequence):
     """tracking.observed_only: candidate pixels are those whose depth point lies in observed space, all of them
     when that would leave fewer than half."""
-    from eslam_core.observed import ObservedSpace
+    from eslam_core.mapping.observed import ObservedSpace
 
     cfg, field, dirs = fitted_map
     ds = room_sequence

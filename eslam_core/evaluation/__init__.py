@@ -5,10 +5,10 @@
 - depth_l1: depth of both meshes rendered from random views inside the scene;
 - plots, report, cli: figures, report.json / report.md for a run directory, and `eslam eval`
   (imported on demand: `from eslam_core.evaluation.report import evaluate_run`).
-Culling of meshes to the observed surface lives in eslam_core.culling (mesh extraction uses it too).
+Culling of meshes to the observed surface lives in eslam_core.outputs.culling (mesh extraction uses it too).
 """
-from .depth_l1 import DepthL1Result, depth_l1
-from .reconstruction import (
+from eslam_core.evaluation.depth_l1 import DepthL1Result, depth_l1
+from eslam_core.evaluation.reconstruction import (
     MeshError,
     ReconstructionResult,
     check_mesh,
@@ -17,7 +17,7 @@ from .reconstruction import (
     reconstruction_metrics,
     sample_surface,
 )
-from .trajectory import (
+from eslam_core.evaluation.trajectory import (
     AteResult,
     RpeResult,
     Trajectory,

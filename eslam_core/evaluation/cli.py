@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .report import (
+from eslam_core.evaluation.report import (
     ALIGN_CHOICES,
     RunDirectoryError,
     compare_runs,

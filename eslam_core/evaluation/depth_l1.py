@@ -7,7 +7,7 @@ The per-view error is the mean |depth_gt - depth_rec| over pixels where both mes
 the mean over views. Pixels where only the ground truth has a surface are reported separately (missing fraction):
 completion measures holes, depth L1 measures the geometry that is there.
 
-Rendering is Embree ray casting on the CPU (eslam_core.raycast), so it runs headless.
+Rendering is Embree ray casting on the CPU (eslam_core.rendering.raycast), so it runs headless.
 """
 from __future__ import annotations
 
@@ -18,9 +18,9 @@ from typing import Optional
 import numpy as np
 import trimesh
 
-from ..camera import Intrinsics
-from ..raycast import render_depth
-from .reconstruction import MeshError, check_mesh
+from eslam_core.camera import Intrinsics
+from eslam_core.rendering.raycast import render_depth
+from eslam_core.evaluation.reconstruction import MeshError, check_mesh
 
 
 @dataclass(frozen=True, eq=False)

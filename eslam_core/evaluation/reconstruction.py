@@ -1,6 +1,6 @@
 """3D reconstruction metrics (NICE-SLAM / ESLAM protocol): accuracy, completion, completion ratio.
 
-Both meshes (already culled to what the cameras saw, see eslam_core.culling) are sampled uniformly by area;
+Both meshes (already culled to what the cameras saw, see eslam_core.outputs.culling) are sampled uniformly by area;
 - accuracy   = mean distance from each reconstruction sample to the nearest ground-truth sample,
 - completion = mean distance from each ground-truth sample to the nearest reconstruction sample,
 - completion ratio = fraction of ground-truth samples closer than 5 cm to the reconstruction,
@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from .trajectory import TrajectoryError, umeyama_alignment
+from eslam_core.evaluation.trajectory import TrajectoryError, umeyama_alignment
 
 log = logging.getLogger(__name__)
 

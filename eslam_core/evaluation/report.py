@@ -23,11 +23,11 @@ import numpy as np
 import trimesh
 import yaml
 
-from ..camera import Intrinsics
-from ..culling import keep_visible_faces, visible_mask
-from .depth_l1 import depth_l1
-from .reconstruction import check_mesh, icp_align, load_mesh, reconstruction_metrics
-from .trajectory import Trajectory, ate, path_length, read_tum, rpe
+from eslam_core.camera import Intrinsics
+from eslam_core.outputs.culling import keep_visible_faces, visible_mask
+from eslam_core.evaluation.depth_l1 import depth_l1
+from eslam_core.evaluation.reconstruction import check_mesh, icp_align, load_mesh, reconstruction_metrics
+from eslam_core.evaluation.trajectory import Trajectory, ate, path_length, read_tum, rpe
 
 log = logging.getLogger(__name__)
 
@@ -196,7 +196,7 @@ def observing_cameras(
         )
     data_path, kind = Path(recorded), summary.get("dataset_kind")
     try:
-        from ..datasets import open_dataset
+        from eslam_core.datasets import open_dataset
     except ImportError as error:
         raise RunDirectoryError(
             f"cannot load data sets ({error}): eslam_core.datasets is required for culling"
@@ -317,7 +317,7 @@ def evaluate_run(
 
 
 def _trajectory_plots(result, run_dir: Path) -> dict[str, str]:
-    from . import plots as figures  # matplotlib is imported only when plots are wanted
+    from eslam_core.evaluation import plots as figures  # matplotlib is imported only when plots are wanted
 
     title = f"ATE RMSE {100 * result.rmse:.2f} cm"
     trajectory = figures.plot_trajectory(result.gt_positions, result.aligned_positions,
@@ -393,7 +393,7 @@ def _evaluate_meshes(report: dict, run: RunFiles, estimate: Trajectory, gt_mesh_
         "seconds": depth.seconds,
     }
     if options.plots and depth.examples:
-        from . import plots as figures
+        from eslam_core.evaluation import plots as figures
 
         path = figures.plot_depth_errors([(v.gt_depth, v.rec_depth) for v in depth.examples],
                                          run.run_dir / "plots" / "depth_errors.png")

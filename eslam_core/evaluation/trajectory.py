@@ -16,7 +16,7 @@ from typing import Union
 
 import numpy as np
 
-from ..geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
+from eslam_core.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
 
 PathLike = Union[str, Path]
 

@@ -10,6 +10,6 @@
 
 See api.py for the API, inprocess.py (workers=1) and multiprocess.py / workers.py / shared.py (workers=2).
 """
-from .api import POLICIES, Health, PoseUpdate, RuntimeCrashed, RuntimeSetupError, SLAMRuntime, make_runtime
+from eslam_core.runtime.api import POLICIES, Health, PoseUpdate, RuntimeCrashed, RuntimeSetupError, SLAMRuntime, make_runtime
 
 __all__ = ["POLICIES", "Health", "PoseUpdate", "RuntimeCrashed", "RuntimeSetupError", "SLAMRuntime", "make_runtime"]

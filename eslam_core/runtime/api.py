@@ -22,9 +22,9 @@ from typing import Optional, Protocol, runtime_checkable
 
 import numpy as np
 
-from ..camera import Frame, Intrinsics
-from ..config import Config
-from ..slam import FrameRecord, frame_pose
+from eslam_core.camera import Frame, Intrinsics
+from eslam_core.config import Config
+from eslam_core.slam import FrameRecord, frame_pose
 
 POLICIES = ("offline", "live")
 WORKER_CHOICES = (1, 2)
@@ -208,9 +208,9 @@ def make_runtime(cfg: Config, intrinsics: Intrinsics, workers: int = 2, policy: 
     """
     check_policy(policy)
     if workers == 1:
-        from .inprocess import InProcessRuntime as Runtime
+        from eslam_core.runtime.inprocess import InProcessRuntime as Runtime
     elif workers == 2:
-        from .multiprocess import MultiProcessRuntime as Runtime
+        from eslam_core.runtime.multiprocess import MultiProcessRuntime as Runtime
     else:
         raise RuntimeSetupError(f"workers must be one of {WORKER_CHOICES} (1 = lock-step in this process, 2 = a "
                                 f"tracking and a mapping process), got {workers!r}")

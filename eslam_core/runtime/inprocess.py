@@ -24,11 +24,11 @@ import numpy as np
 import torch
 from torch.optim.optimizer import register_optimizer_step_post_hook
 
-from ..camera import Frame, Intrinsics
-from ..config import Config
-from ..slam import SLAM
-from .saving import SavingMixin
-from .api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, TrajectoryMirror, \
+from eslam_core.camera import Frame, Intrinsics
+from eslam_core.config import Config
+from eslam_core.slam import SLAM
+from eslam_core.runtime.saving import SavingMixin
+from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, TrajectoryMirror, \
     check_frame, check_policy
 
 log = logging.getLogger("eslam")

@@ -45,17 +45,17 @@ import numpy as np
 import torch
 import torch.multiprocessing as tmp
 
-from ..camera import Frame, Intrinsics
-from ..config import Config
-from ..field import SceneField
-from ..frames import prepare_frame, working_intrinsics
-from ..keyframes import Keyframe
-from ..slam import SLAM, FrameRecord, keyframe_positions
-from .saving import SavingMixin
-from .api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, TrajectoryMirror, \
+from eslam_core.camera import Frame, Intrinsics
+from eslam_core.config import Config
+from eslam_core.representation.field import SceneField
+from eslam_core.frames import prepare_frame, working_intrinsics
+from eslam_core.mapping.keyframes import Keyframe
+from eslam_core.slam import SLAM, FrameRecord, keyframe_positions
+from eslam_core.runtime.saving import SavingMixin
+from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, TrajectoryMirror, \
     check_frame, check_policy
-from .shared import Control, Counter, FrameRing, HealthBoard, MapMeta
-from .workers import EXIT_ORPHANED, STOP_SIGNALS, Channels, MapperFinished, MapperSnapshot, MappingReport, SnapshotRequest, \
+from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta
+from eslam_core.runtime.workers import EXIT_ORPHANED, STOP_SIGNALS, Channels, MapperFinished, MapperSnapshot, MappingReport, SnapshotRequest, \
     TrackedFrame, TrackerFinished, WorkerReady, WorkerSetup, mapper_main, tracker_main
 
 log = logging.getLogger("eslam")

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..evaluation.trajectory import Trajectory, write_tum
-from ..export import map_mesh, save_checkpoint
-from ..mesh import save_ply
+from eslam_core.evaluation.trajectory import Trajectory, write_tum
+from eslam_core.outputs.export import map_mesh, save_checkpoint
+from eslam_core.outputs.mesh import save_ply
 
 
 class SavingMixin:

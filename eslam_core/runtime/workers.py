@@ -54,14 +54,14 @@ import numpy as np
 import torch
 from torch.optim.optimizer import register_optimizer_step_post_hook
 
-from ..camera import Frame, Intrinsics
-from ..config import Config
-from ..field import SceneField
-from ..frames import PreparedFrame, working_intrinsics
-from ..keyframes import Keyframe
-from ..native import load_kernel
-from ..slam import SLAM, StepResult
-from .shared import Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap
+from eslam_core.camera import Frame, Intrinsics
+from eslam_core.config import Config
+from eslam_core.representation.field import SceneField
+from eslam_core.frames import PreparedFrame, working_intrinsics
+from eslam_core.mapping.keyframes import Keyframe
+from eslam_core.native import load_kernel
+from eslam_core.slam import SLAM, StepResult
+from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap
 
 log = logging.getLogger("eslam")
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .camera import Intrinsics
+from eslam_core.camera import Intrinsics
 
 GREY = torch.tensor([0.299, 0.587, 0.114])
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .camera import Intrinsics
+from eslam_core.camera import Intrinsics
 
 DEPTH_STEP = 1.0 / 5000.0  # metres per unit of the stored depth
 DEPTH_MAX = 65535 * DEPTH_STEP

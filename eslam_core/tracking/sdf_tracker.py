@@ -24,15 +24,15 @@ from __future__ import annotations
 
 import torch
 
-from .camera import Intrinsics
-from .config import Config
-from .cpu import denormals_flushed
-from .field import FrozenField, RadianceField, SceneField
-from .frames import PreparedFrame, border_mask
-from .keyframes import Keyframe
-from .observed import ObservedSpace
-from .photometric import GREY, Reference, grey_pyramid, photometric_residuals, sample
-from .tracking import TrackingResult
+from eslam_core.camera import Intrinsics
+from eslam_core.config import Config
+from eslam_core.cpu import denormals_flushed
+from eslam_core.representation.field import FrozenField, RadianceField, SceneField
+from eslam_core.frames import PreparedFrame, border_mask
+from eslam_core.mapping.keyframes import Keyframe
+from eslam_core.mapping.observed import ObservedSpace
+from eslam_core.tracking.photometric import GREY, Reference, grey_pyramid, photometric_residuals, sample
+from eslam_core.tracking.render_tracker import TrackingResult
 
 SATURATED_COLOR = 3.0  # the colour penalty of a saturated point, in units of its Huber scale
 

@@ -28,9 +28,9 @@ import trimesh
 from PIL import Image
 from scipy import ndimage
 
-from .camera import Intrinsics
-from .geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
-from .raycast import camera_rays, cast_rays
+from eslam_core.camera import Intrinsics
+from eslam_core.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
+from eslam_core.rendering.raycast import camera_rays, cast_rays
 
 FPS = 30.0  # frame rate of written sequences: timestamps are index / FPS
 DEPTH_SCALE = 5000.0  # TUM convention: stored uint16 = metres * DEPTH_SCALE
@@ -732,7 +732,7 @@ def write_tum_sequence(
     coloured.export(out / "mesh.ply")
     settings = {
         "format_version": FORMAT_VERSION,
-        "generator": "eslam_core.synthetic",
+        "generator": "eslam_core.datasets.synthetic",
         "room_seed": scene.seed,
         "seed": seed,
         "n_frames": len(poses),

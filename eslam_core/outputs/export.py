@@ -9,11 +9,11 @@ import numpy as np
 import torch
 import trimesh
 
-from .culling import visible_mask
-from .evaluation.trajectory import Trajectory, write_tum
-from .geometry import depth_points_world
-from .mesh import MeshSettings, extract_mesh
-from .slam import SLAM
+from eslam_core.outputs.culling import visible_mask
+from eslam_core.evaluation.trajectory import Trajectory, write_tum
+from eslam_core.geometry import depth_points_world
+from eslam_core.outputs.mesh import MeshSettings, extract_mesh
+from eslam_core.slam import SLAM
 
 
 class CheckpointError(ValueError):

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 
 import torch
 
-from .config import RenderConfig
-from .field import RadianceField
-from .sampling import far_in_bound, importance, near_surface, stratified
+from eslam_core.config import RenderConfig
+from eslam_core.representation.field import RadianceField
+from eslam_core.rendering.sampling import far_in_bound, importance, near_surface, stratified
 
 
 @dataclass

@@ -11,14 +11,14 @@ from typing import Callable, Optional
 
 import torch
 
-from .config import Config
-from .cpu import denormals_flushed
-from .field import SceneField
-from .frames import border_mask
-from .geometry import params_to_pose, pose_to_params
-from .keyframes import Keyframe
-from .losses import eslam_losses
-from .rendering import render_rays
+from eslam_core.config import Config
+from eslam_core.cpu import denormals_flushed
+from eslam_core.representation.field import SceneField
+from eslam_core.frames import border_mask
+from eslam_core.geometry import params_to_pose, pose_to_params
+from eslam_core.mapping.keyframes import Keyframe
+from eslam_core.rendering.losses import eslam_losses
+from eslam_core.rendering.volume import render_rays
 
 
 @dataclass

@@ -12,16 +12,16 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .camera import Intrinsics
-from .config import Config
-from .cpu import denormals_flushed
-from .field import FrozenField, SceneField
-from .frames import PreparedFrame, border_mask
-from .geometry import depth_points_world, params_to_pose, pose_to_params, rays_to_world, scale_motion
-from .keyframes import Keyframe
-from .losses import eslam_losses
-from .observed import ObservedSpace
-from .rendering import render_rays
+from eslam_core.camera import Intrinsics
+from eslam_core.config import Config
+from eslam_core.cpu import denormals_flushed
+from eslam_core.representation.field import FrozenField, SceneField
+from eslam_core.frames import PreparedFrame, border_mask
+from eslam_core.geometry import depth_points_world, params_to_pose, pose_to_params, rays_to_world, scale_motion
+from eslam_core.mapping.keyframes import Keyframe
+from eslam_core.rendering.losses import eslam_losses
+from eslam_core.mapping.observed import ObservedSpace
+from eslam_core.rendering.volume import render_rays
 
 
 @dataclass
@@ -109,7 +109,7 @@ class Tracker:
 def make_tracker(cfg: Config, dirs_cam: torch.Tensor, intr: Intrinsics):
     """The tracker the config asks for: the paper's rendering tracker or the fast SDF alignment."""
     if cfg.tracking.method == "sdf":
-        from .sdf_tracking import SDFTracker
+        from eslam_core.tracking.sdf_tracker import SDFTracker
 
         return SDFTracker(cfg, dirs_cam, intr)
     return Tracker(cfg, dirs_cam, intr.height, intr.width)

@@ -16,7 +16,7 @@ from typing import Optional, Sequence, Union
 import numpy as np
 import trimesh
 
-from .camera import Intrinsics
+from eslam_core.camera import Intrinsics
 
 # A depth stack (K, H, W) or any sequence of K depth images (H, W); sliced per chunk of cameras.
 DepthImages = Union[np.ndarray, Sequence[np.ndarray]]

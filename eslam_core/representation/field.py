@@ -12,9 +12,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .config import ModelConfig
-from .decoders import Decoder
-from .planes import FeaturePlanes
+from eslam_core.config import ModelConfig
+from eslam_core.representation.decoders import Decoder
+from eslam_core.representation.planes import FeaturePlanes
 
 
 class RadianceField(Protocol):

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .camera import Intrinsics, backproject
+from eslam_core.camera import Intrinsics, backproject
 
 
 def grow_to_multiple(bound: np.ndarray, step: float) -> np.ndarray:

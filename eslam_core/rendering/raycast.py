@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from .camera import Intrinsics
+from eslam_core.camera import Intrinsics
 
 
 @dataclass

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import torch
 
-from .config import LossWeights
-from .rendering import RenderOutput
+from eslam_core.config import LossWeights
+from eslam_core.rendering.volume import RenderOutput
 
 
 @dataclass

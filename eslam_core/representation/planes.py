@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .native import load_kernel
+from eslam_core.native import load_kernel
 
 PLANE_AXES = ((0, 1), (0, 2), (1, 2))  # xy, xz, yz: (column axis, row axis) of each plane
 
