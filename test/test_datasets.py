@@ -183,20 +183,35 @@ def write_scannet(scene: Path, seed: int = 3) -> dict:
     return {"numbers": numbers, "raw": raws, "poses": poses}
 
 
-def write_7scenes(seq: Path, seed: int = 4) -> dict:
-    """7-Scenes sequence folder with frames 0..2 and some 65535 (invalid) depth pixels."""
+def write_7scenes(seq: Path, seed: int = 4, colour_suffix: str = ".color.png", intrinsics_file: bool = False,
+                  kinectfusion_rotations: bool = False) -> dict:
+    """7-Scenes sequence folder with frames 0..2 and missing depth marked both ways (65535 and 0).
+
+    `colour_suffix` ".color.jpg" writes the JPEG copy most people download (smooth colour, so that JPEG stays within
+    a few levels); `intrinsics_file` writes a 3x3 camera-intrinsics.txt of SMALL; `kinectfusion_rotations` scales
+    each rotation by 0.9999, as KinectFusion's poses are only orthonormal to about 1e-4.
+    """
     rng = np.random.default_rng(seed)
     seq.mkdir(parents=True, exist_ok=True)
     rgbs, raws, poses = [], [], []
     for k in range(3):
-        rgbs.append(random_rgb(rng))
-        raw = random_raw_depth(rng, 1000.0)
+        if colour_suffix == ".color.png":
+            rgbs.append(random_rgb(rng))
+        else:
+            y, x = np.mgrid[0:H, 0:W]
+            rgbs.append(np.stack([20 * x + 15 * k, 30 * y + 20, np.full_like(x, 90)], axis=-1).astype(np.uint8))
+        raw = random_raw_depth(rng, 1000.0)  # includes 0 = missing
         raw[1, :3] = 65535
         raws.append(raw)
         poses.append(random_pose(rng))
-        save_rgb(seq / f"frame-{k:06d}.color.png", rgbs[-1])
+        written = poses[-1].copy()
+        if kinectfusion_rotations:
+            written[:3, :3] *= 0.9999
+        save_rgb(seq / f"frame-{k:06d}{colour_suffix}", rgbs[-1])
         save_png16(seq / f"frame-{k:06d}.depth.png", raw)
-        np.savetxt(seq / f"frame-{k:06d}.pose.txt", poses[-1], fmt="%.12e")
+        np.savetxt(seq / f"frame-{k:06d}.pose.txt", written, fmt="%.12e")
+    if intrinsics_file:
+        np.savetxt(seq / "camera-intrinsics.txt", SMALL.matrix(), fmt="%.18e")
     return {"rgb": rgbs, "raw": raws, "poses": poses}
 
 
@@ -230,14 +245,19 @@ def test_tum_association_depth_poses_and_intrinsics(tmp_path):
 
 
 def test_association_prefers_the_closest_pair_and_uses_each_depth_once():
+    def pairs(first, second):
+        return associate_timestamps(np.asarray(first, dtype=float), np.asarray(second, dtype=float), 0.02).tolist()
+
     # colour at 0.0 and 0.015 both within 20 ms of the only depth (0.010): the nearer (0.015) gets it
-    assert associate_timestamps(np.array([0.0, 0.015]), np.array([0.010]), 0.02) == [(1, 0)]
+    assert pairs([0.0, 0.015], [0.010]) == [[1, 0]]
     # regular 30 Hz streams offset by 10 ms pair one-to-one; offset by 25 ms, each depth pairs with the next
     # colour image (8.3 ms away) and the first colour image has none
     rgb = np.arange(10) / 30
-    assert associate_timestamps(rgb, rgb + 0.010, 0.02) == [(i, i) for i in range(10)]
-    assert associate_timestamps(rgb, rgb + 0.025, 0.02) == [(i + 1, i) for i in range(9)]
-    assert associate_timestamps(np.array([0.0]), np.array([0.025]), 0.02) == []
+    assert pairs(rgb, rgb + 0.010) == [[i, i] for i in range(10)]
+    assert pairs(rgb, rgb + 0.025) == [[i + 1, i] for i in range(9)]
+    assert pairs([0.0], [0.025]) == []
+    # a list written out of time order comes back in time order; an exact 20 ms gap (printed decimals) pairs
+    assert pairs([0.2, 0.1], [0.1, 0.22]) == [[1, 0], [0, 1]]
     # ground truth may be reused and is taken nearest-first
     np.testing.assert_array_equal(
         nearest_within(np.array([0.0, 0.011, 0.5]), np.array([0.02, 0.0, 0.01]), 0.02), [1, 2, -1]
@@ -377,15 +397,97 @@ def test_7scenes_invalid_depth_poses_defaults(tmp_path):
     ds = open_dataset(tmp_path / "chess" / "seq-01", intrinsics=SMALL)
     for i, frame in enumerate(ds):
         np.testing.assert_array_equal(frame.rgb, truth["rgb"][i])
-        expected = metres(truth["raw"][i], 1000.0)
-        expected[truth["raw"][i] == 65535] = 0.0
-        np.testing.assert_array_equal(frame.depth, expected)
+        np.testing.assert_array_equal(frame.depth, seven_scenes_depth(truth["raw"][i]))
         assert np.all(frame.depth[1, :3] == 0.0) and frame.depth.max() < 4.01
         np.testing.assert_allclose(frame.pose, truth["poses"][i], atol=1e-11)
     # a scene folder is recognised, and the user is told which sequence folders to pass
     assert detect_kind(tmp_path / "chess") == "7scenes"
     with pytest.raises(DatasetError, match="seq-01"):
         open_dataset(tmp_path / "chess")
+
+
+def seven_scenes_depth(raw: np.ndarray) -> np.ndarray:
+    expected = metres(raw, 1000.0)
+    expected[raw == 65535] = 0.0
+    return expected
+
+
+def test_7scenes_jpeg_copy_with_intrinsics_file_and_kinectfusion_poses(tmp_path):
+    # the copy widely downloaded: one flat folder, JPEG colour, camera-intrinsics.txt, 0 for missing depth
+    folder = tmp_path / "7scenes_redkitchen_0_2"
+    truth = write_7scenes(folder, colour_suffix=".color.jpg", intrinsics_file=True, kinectfusion_rotations=True)
+    assert detect_kind(folder) == "7scenes"
+    ds = open_dataset(folder)
+    assert isinstance(ds, SevenScenesDataset) and ds.name == "7scenes_redkitchen_0_2" and len(ds) == 3
+    assert ds.intrinsics == SMALL  # from camera-intrinsics.txt (3x3), sized by the depth images
+    for i, frame in enumerate(ds):
+        assert frame.rgb.dtype == np.uint8 and frame.rgb.shape == (H, W, 3)
+        assert np.abs(frame.rgb.astype(int) - truth["rgb"][i]).mean() < 4  # JPEG, within a few levels
+        np.testing.assert_array_equal(frame.depth, seven_scenes_depth(truth["raw"][i]))
+        assert np.all(frame.depth[truth["raw"][i] == 0] == 0.0) and np.all(frame.depth[1, :3] == 0.0)
+        rotation = frame.pose[:3, :3]
+        np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)  # re-orthonormalised
+        assert np.linalg.det(rotation) > 0
+        np.testing.assert_allclose(frame.pose, truth["poses"][i], atol=2e-4)  # the nearest rotation: the true one
+        np.testing.assert_allclose(frame.pose[:3, 3], truth["poses"][i][:3, 3], atol=1e-11)
+
+    # the intrinsics argument (config `camera:`) wins over the file
+    other = Intrinsics(W, H, fx=9.0, fy=9.0, cx=4.0, cy=3.0)
+    assert open_dataset(folder, intrinsics=other).intrinsics == other
+    (folder / "camera-intrinsics.txt").write_text("585 0 320\n0 585 240\n")
+    with pytest.raises(DatasetError, match=r"camera-intrinsics\.txt: expected 3 lines of 3 numbers"):
+        open_dataset(folder)
+
+
+def test_7scenes_jpeg_sequences_in_a_scene_folder_and_png_preferred(tmp_path):
+    scene = tmp_path / "redkitchen"
+    truth = write_7scenes(scene / "seq-01", colour_suffix=".color.jpg")
+    np.savetxt(scene / "camera-intrinsics.txt", SMALL.matrix())  # the scene folder's file serves its sequences
+    assert detect_kind(scene) == "7scenes" and detect_kind(scene / "seq-01") == "7scenes"
+    with pytest.raises(DatasetError, match="seq-01"):
+        open_dataset(scene)
+    ds = open_dataset(scene / "seq-01")
+    assert ds.name == "redkitchen-seq-01" and ds.intrinsics == SMALL
+    assert [r.rgb_path.name for r in ds._records] == [f"frame-{k:06d}.color.jpg" for k in range(3)]
+    # where a frame has both, the lossless PNG is read
+    png = random_rgb(np.random.default_rng(9))
+    save_rgb(scene / "seq-01" / "frame-000001.color.png", png)
+    ds = open_dataset(scene / "seq-01")
+    assert len(ds) == 3
+    np.testing.assert_array_equal(ds[1].rgb, png)
+    assert np.abs(ds[2].rgb.astype(int) - truth["rgb"][2]).mean() < 4
+    # no colour in either form: the error names both
+    for child in (scene / "seq-01").glob("*.color.*"):
+        child.unlink()
+    with pytest.raises(DatasetError, match=r"no RGB-D frames.*\.color\.png \(or \.color\.jpg\)"):
+        open_dataset(scene / "seq-01", "7scenes")
+
+
+def test_scannet_zero_padded_png_export_keeps_its_poses(tmp_path):
+    scene = tmp_path / "scene0002_00"
+    truth = write_scannet(scene)
+    for folder, suffix in (("color", ".jpg"), ("depth", ".png"), ("pose", ".txt")):
+        for k in truth["numbers"]:
+            (scene / folder / f"{k}{suffix}").rename(scene / folder / f"{k:06d}{suffix}")
+    for k in truth["numbers"]:  # colour as PNG, as some exporters write it
+        jpg = scene / "color" / f"{k:06d}.jpg"
+        Image.open(jpg).save(jpg.with_suffix(".png"))
+        jpg.unlink()
+    ds = open_dataset(scene)
+    assert len(ds) == 3
+    np.testing.assert_allclose(ds.timestamps(), np.array(truth["numbers"]) / 30)
+    assert [p is None for p in ds.gt_poses()] == [False, True, False]  # poses found despite the padding
+    np.testing.assert_allclose(ds.gt_poses()[2], truth["poses"][2], atol=1e-12)
+    np.testing.assert_array_equal(ds[2].depth, metres(truth["raw"][2], 1000.0))
+
+
+def test_rotations_that_are_not_rotations_are_refused(tmp_path):
+    seq = tmp_path / "seq-01"
+    write_7scenes(seq)
+    mirrored = np.diag([1.0, 1.0, -1.0, 1.0])  # orthonormal but a reflection
+    np.savetxt(seq / "frame-000001.pose.txt", mirrored)
+    with pytest.raises(DatasetError, match=r"frame-000001\.pose\.txt: not a rigid"):
+        open_dataset(seq)
 
 
 # --- the Sequence behaviour and subset() ----------------------------------------------------------------------------

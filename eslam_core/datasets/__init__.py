@@ -16,7 +16,7 @@ from eslam_core.camera import Intrinsics
 from eslam_core.datasets.base import DatasetError, FrameRecord, RGBDDataset
 from eslam_core.datasets.replica import ReplicaDataset
 from eslam_core.datasets.scannet import ScanNetDataset
-from eslam_core.datasets.sevenscenes import SevenScenesDataset
+from eslam_core.datasets.sevenscenes import SevenScenesDataset, has_frames as has_7scenes_frames
 from eslam_core.datasets.tum import ICLNUIMDataset, TUMDataset
 
 __all__ = [
@@ -54,7 +54,7 @@ def detect_kind(path: Path | str) -> str:
     """The format of a data set folder, from the files it holds. ICL-NUIM looks like TUM: it is never detected.
 
     Checked in this order: replica (cam_params.json, or results/ + traj.txt here or in a sub-folder), scannet
-    (color/ and depth/ folders, here or in frames/), 7scenes (frame-*.color.png, here or in seq-*/), tum
+    (color/ and depth/ folders, here or in frames/), 7scenes (frame-*.color.png or .jpg, here or in seq-*/), tum
     (rgb.txt + depth.txt, or associations.txt).
     """
     folder = Path(path)
@@ -64,13 +64,13 @@ def detect_kind(path: Path | str) -> str:
         return "replica"
     if _has_dirs(folder, "color", "depth") or _has_dirs(folder / "frames", "color", "depth"):
         return "scannet"
-    if any(folder.glob("frame-*.color.png")) or any(folder.glob("seq-*/frame-*.color.png")):
+    if has_7scenes_frames(folder) or any(has_7scenes_frames(seq) for seq in folder.glob("seq-*")):
         return "7scenes"
     if ((folder / "rgb.txt").is_file() and (folder / "depth.txt").is_file()) or (folder / "associations.txt").is_file():
         return "tum"
     raise DatasetError(
         f"cannot tell which data set {folder} is: looked for cam_params.json or results/ + traj.txt (replica), "
-        f"color/ + depth/ folders (scannet), frame-*.color.png (7scenes), rgb.txt + depth.txt or "
+        f"color/ + depth/ folders (scannet), frame-*.color.png / .jpg (7scenes), rgb.txt + depth.txt or "
         f"associations.txt (tum); pass kind= one of {', '.join(DATASET_KINDS)} (ICL-NUIM needs kind='icl')"
     )
 

@@ -251,29 +251,49 @@ def checked_pose(matrix: np.ndarray, path: Path, line_number: Optional[int] = No
     """A 4x4 camera-to-world pose; None if the data set marks it invalid (non-finite values, as ScanNet does).
 
     A finite matrix that is not a rigid transform (bottom row not 0 0 0 1, rotation not orthonormal) is an
-    error rather than a silent None: it means the file is not what the reader thinks it is.
+    error rather than a silent None: it means the file is not what the reader thinks it is. A rotation that is
+    orthonormal only to the file's precision (7-Scenes' KinectFusion poses have singular values 0.9998-0.99996)
+    is replaced by the nearest rotation, so that relative poses and inverses built from it are rigid.
     """
     where = f"{path}" if line_number is None else f"{path}, line {line_number}"
     matrix = np.asarray(matrix, dtype=np.float64).reshape(4, 4)
     if not np.all(np.isfinite(matrix)):
         return None
     rotation = matrix[:3, :3]
-    if not np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6) or not np.allclose(
-        rotation @ rotation.T, np.eye(3), atol=1e-3
-    ):
+    if (not np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6)
+            or not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0):
         raise DatasetError(
             f"{where}: not a rigid camera-to-world transform (rotation must be orthonormal, last row 0 0 0 1); "
             f"check the file is the ground-truth pose file of this data set"
         )
+    u, _, vt = np.linalg.svd(rotation)
+    matrix = matrix.copy()
+    matrix[:3, :3] = u @ vt  # a proper rotation: det > 0 was checked
     return matrix
+
+
+def read_matrix(path: Path, size: int, what: str) -> np.ndarray:
+    """A size x size matrix written as `size` lines of `size` numbers (pose and camera-matrix files)."""
+    rows = read_text_rows(path, size, what)
+    if len(rows) != size:
+        raise DatasetError(
+            f"{path}: expected {size} lines of {size} numbers in this {what}, got {len(rows)}; fix the file"
+        )
+    return np.stack([parse_floats(fields, path, n) for n, fields in rows])
 
 
 def read_matrix4x4(path: Path, what: str) -> np.ndarray:
     """A 4x4 matrix written as 4 lines of 4 numbers (ScanNet and 7-Scenes pose / intrinsic files)."""
-    rows = read_text_rows(path, 4, what)
-    if len(rows) != 4:
-        raise DatasetError(f"{path}: expected 4 lines of 4 numbers in this {what}, got {len(rows)}; fix the file")
-    return np.stack([parse_floats(fields, path, n) for n, fields in rows])
+    return read_matrix(path, 4, what)
+
+
+def intrinsics_from_matrix(matrix: np.ndarray, width: int, height: int, source: Path) -> Intrinsics:
+    """Pinhole intrinsics of a 3x3 or 4x4 camera matrix for images of the given size."""
+    try:
+        return Intrinsics(width, height, fx=float(matrix[0, 0]), fy=float(matrix[1, 1]),
+                          cx=float(matrix[0, 2]), cy=float(matrix[1, 2]))
+    except ValueError as err:
+        raise DatasetError(f"{source} is not a valid camera matrix ({err}); fix or delete the file") from None
 
 
 def numbered_files(folder: Path, pattern: re.Pattern[str]) -> dict[int, Path]:

@@ -1,7 +1,7 @@
 """ScanNet scenes as exported by ScanNet's SensReader (the layout NICE-SLAM and ESLAM read).
 
     scene0000_00/                 (or scene0000_00/frames/, NICE-SLAM's layout, which is also accepted)
-      color/N.jpg                 1296x968 colour
+      color/N.jpg                 1296x968 colour (N.png in some exports; N may be zero-padded: 000010.jpg)
       depth/N.png                 640x480 uint16 millimetres, 0 = missing
       pose/N.txt                  4x4 camera-to-world; rows of -inf / nan mark frames the tracker lost
       intrinsic/intrinsic_depth.txt   4x4 whose top-left 3x3 is the depth camera matrix
@@ -28,6 +28,7 @@ from eslam_core.datasets.base import (
     checked_pose,
     empty_sequence_error,
     image_size,
+    intrinsics_from_matrix,
     numbered_files,
     read_matrix4x4,
     read_rgb,
@@ -41,6 +42,7 @@ SCANNET_FRAME_RATE = 30.0
 
 _COLOUR_NAME = re.compile(r"^(\d+)\.(?:jpg|jpeg|png)$", re.IGNORECASE)
 _DEPTH_NAME = re.compile(r"^(\d+)\.png$", re.IGNORECASE)
+_POSE_NAME = re.compile(r"^(\d+)\.txt$")
 
 
 def find_frames_folder(path: Path) -> Path:
@@ -52,15 +54,6 @@ def find_frames_folder(path: Path) -> Path:
         f"no ScanNet frames in {path}: expected color/ and depth/ folders in it or in {path / 'frames'} "
         f"(export the .sens file with ScanNet's SensReader)"
     )
-
-
-def intrinsics_from_matrix(matrix: np.ndarray, width: int, height: int, source: Path) -> Intrinsics:
-    """Pinhole intrinsics of a 3x3 or 4x4 camera matrix for images of the given size."""
-    try:
-        return Intrinsics(width, height, fx=float(matrix[0, 0]), fy=float(matrix[1, 1]),
-                          cx=float(matrix[0, 2]), cy=float(matrix[1, 2]))
-    except ValueError as err:
-        raise DatasetError(f"{source} is not a valid camera matrix ({err}); re-export the intrinsics") from None
 
 
 class ScanNetDataset(RGBDDataset):
@@ -81,11 +74,12 @@ class ScanNetDataset(RGBDDataset):
         numbers = sorted(colour.keys() & depth.keys())
         looked_for = f"N.jpg / N.png pairs in {frames / 'color'} and {frames / 'depth'}"
 
-        pose_folder = frames / "pose"
+        # Pose files by number too: exports that zero-pad image names (000010.jpg) pad pose names the same way.
+        pose_files = numbered_files(frames / "pose", _POSE_NAME) if (frames / "pose").is_dir() else {}
         records = []
         for k in numbers:
-            pose_file = pose_folder / f"{k}.txt"
-            pose = checked_pose(read_matrix4x4(pose_file, "ScanNet pose"), pose_file) if pose_file.is_file() else None
+            pose_file = pose_files.get(k)
+            pose = None if pose_file is None else checked_pose(read_matrix4x4(pose_file, "ScanNet pose"), pose_file)
             records.append(FrameRecord(k / SCANNET_FRAME_RATE, colour[k], depth[k], pose))
 
         if not numbers:
