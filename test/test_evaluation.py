@@ -118,11 +118,11 @@ def test_tum_round_trip_and_quaternion_normalisation(tmp_path):
 def test_read_tum_errors_name_file_line_and_timestamp(tmp_path):
     bad = tmp_path / "bad.txt"
     bad.write_text("0.0 0 0 0 0 0 0 1\n# comment\n0.1 0 0 0 0 0 1\n")
-    with pytest.raises(TrajectoryError, match=rf"bad.txt:3: expected 8 values"):
+    with pytest.raises(TrajectoryError, match=r"bad.txt, line 3: expected 8 fields"):
         read_tum(bad)
     nan = tmp_path / "nan.txt"
     nan.write_text("0.0 0 0 0 0 0 0 1\n1.5 nan 0 0 0 0 0 1\n")
-    with pytest.raises(TrajectoryError, match=r"nan.txt:2: pose at timestamp 1.5 is not finite"):
+    with pytest.raises(TrajectoryError, match=r"nan.txt, line 2: pose at timestamp 1.5 is not finite"):
         read_tum(nan)
     with pytest.raises(TrajectoryError, match="not found"):
         read_tum(tmp_path / "missing.txt")

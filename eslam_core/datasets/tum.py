@@ -72,33 +72,38 @@ def icl_to_opencv(pose_file: np.ndarray) -> np.ndarray:
     return ICL_Y_FLIP @ pose_file @ ICL_Y_FLIP
 
 
-def associate_timestamps(first: np.ndarray, second: np.ndarray, max_difference: float) -> list[tuple[int, int]]:
-    """Pairs (i, j) with |first[i] - second[j]| <= max_difference, each index used at most once.
+def associate_timestamps(first: np.ndarray, second: np.ndarray, max_difference: float) -> np.ndarray:
+    """Index pairs (M, 2) with |first[i] - second[j]| <= max_difference, each index used at most once.
 
-    Candidate pairs are accepted closest-first, so when two colour images compete for one depth image the
-    nearer one gets it and the other is dropped. Returned in order of i.
+    As TUM's associate.py: candidate pairs are accepted closest-first, so when two colour images compete for one
+    depth image the nearer one gets it and the other is dropped (or takes its next-best partner). Ordered by the
+    time of `first`. This is the one pairing of two clocks: the TUM reader pairs colour with depth by it, the
+    trajectory metrics an estimate with the ground truth. Empty (shape (0, 2)) when nothing pairs.
     """
     first = np.asarray(first, dtype=np.float64)
     second = np.asarray(second, dtype=np.float64)
+    tolerance = max_difference + 1e-9  # timestamps are printed decimals: do not lose exact-boundary pairs
     order = np.argsort(second, kind="stable")
     second_sorted = second[order]
-    tolerance = max_difference + 1e-9  # timestamps are printed decimals: do not lose exact-boundary pairs
-    candidates = []
-    for i, t in enumerate(first):
-        lo = np.searchsorted(second_sorted, t - tolerance, side="left")
-        hi = np.searchsorted(second_sorted, t + tolerance, side="right")
-        for k in range(lo, hi):
-            candidates.append((abs(second_sorted[k] - t), i, int(order[k])))
-    candidates.sort()
-    used_first: set[int] = set()
-    used_second: set[int] = set()
+    lo = np.searchsorted(second_sorted, first - tolerance, side="left")
+    hi = np.searchsorted(second_sorted, first + tolerance, side="right")
+    counts = hi - lo
+    first_index = np.repeat(np.arange(len(first)), counts)
+    # Position of each candidate inside its window: a running index reset at each window start.
+    offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    second_index = order[np.repeat(lo, counts) + offsets]
+    gap = np.abs(first[first_index] - second[second_index])
+
+    used_first = np.zeros(len(first), dtype=bool)
+    used_second = np.zeros(len(second), dtype=bool)
     pairs = []
-    for _, i, j in candidates:
-        if i not in used_first and j not in used_second:
-            used_first.add(i)
-            used_second.add(j)
+    for k in np.lexsort((second_index, first_index, gap)):
+        i, j = first_index[k], second_index[k]
+        if not used_first[i] and not used_second[j]:
+            used_first[i] = used_second[j] = True
             pairs.append((i, j))
-    return sorted(pairs)
+    pairs = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    return pairs[np.lexsort((pairs[:, 0], first[pairs[:, 0]]))]
 
 
 def nearest_within(queries: np.ndarray, references: np.ndarray, max_difference: float) -> np.ndarray:
@@ -144,22 +149,28 @@ def read_associations(path: Path) -> tuple[np.ndarray, list[str], list[str]]:
     return timestamps, [f[rgb_col + 1] for _, f in rows], [f[depth_col + 1] for _, f in rows]
 
 
-def read_groundtruth(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Timestamps and camera-to-world poses (as written, no axis change) of a TUM trajectory file."""
+def read_tum_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Timestamps (N,) and camera-to-world poses (N, 4, 4), as written (no axis change), of a TUM trajectory file
+    (`timestamp tx ty tz qx qy qz qw` per line; `#` comments, spaces or commas). The one reader of the format:
+    ground truth of TUM / ICL-NUIM folders and the trajectories the evaluation compares."""
     rows = read_text_rows(path, 8, "TUM trajectory (`timestamp tx ty tz qx qy qz qw` per line)")
     timestamps, poses = [], []
     for line_number, fields in rows:
         values = parse_floats(fields, path, line_number)
         if not np.all(np.isfinite(values)):
-            raise DatasetError(f"{path}, line {line_number}: non-finite value in pose; fix or delete the line")
+            raise DatasetError(
+                f"{path}, line {line_number}: pose at timestamp {fields[0]} is not finite (nan/inf); the "
+                f"estimator lost track there: fix or delete the line"
+            )
         try:
+            # rotation_from_quaternion normalises: files often carry rounded, non-unit quaternions
             poses.append(pose_from_tum(*values[1:]))
         except ValueError:
             raise DatasetError(
                 f"{path}, line {line_number}: the quaternion qx qy qz qw is all zeros; fix or delete the line"
             ) from None
         timestamps.append(values[0])
-    return np.array(timestamps, dtype=np.float64), poses
+    return np.array(timestamps, dtype=np.float64), np.array(poses, dtype=np.float64).reshape(-1, 4, 4)
 
 
 def read_camera_json(path: Path) -> tuple[Intrinsics, Optional[float]]:
@@ -251,7 +262,7 @@ class TUMDataset(RGBDDataset):
         rgb_times, rgb_files = read_file_list(rgb_list)
         depth_times, depth_files = read_file_list(depth_list)
         pairs = associate_timestamps(rgb_times, depth_times, MAX_TIME_DIFFERENCE)
-        if rgb_times.size and depth_times.size and not pairs:
+        if rgb_times.size and depth_times.size and not len(pairs):
             raise DatasetError(
                 f"no colour image in {rgb_list} has a depth image in {depth_list} within {MAX_TIME_DIFFERENCE} s; "
                 f"check that both lists belong to the same recording, or write an associations.txt"
@@ -268,7 +279,7 @@ class TUMDataset(RGBDDataset):
         groundtruth = self._groundtruth_file(root)
         if groundtruth is None:
             return [None] * len(times)
-        gt_times, gt_poses = read_groundtruth(groundtruth)
+        gt_times, gt_poses = read_tum_trajectory(groundtruth)
         nearest = nearest_within(times, gt_times, MAX_TIME_DIFFERENCE)
         return [None if k < 0 else self._ground_truth_pose(gt_poses[k]) for k in nearest]
 

@@ -16,6 +16,8 @@ from typing import Union
 
 import numpy as np
 
+from eslam_core.datasets.base import DatasetError
+from eslam_core.datasets.tum import associate_timestamps, read_tum_trajectory
 from eslam_core.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
 
 PathLike = Union[str, Path]
@@ -80,41 +82,20 @@ def rotation_angle(rotation: np.ndarray) -> np.ndarray:
 
 
 def read_tum(path: PathLike) -> Trajectory:
-    """Read a TUM trajectory file (`timestamp tx ty tz qx qy qz qw` per line, `#` comments, spaces or commas)."""
+    """Read a TUM trajectory file (`timestamp tx ty tz qx qy qz qw` per line, `#` comments, spaces or commas).
+
+    The format has one reader, `eslam_core.datasets.tum.read_tum_trajectory`; its errors become TrajectoryErrors.
+    """
     path = Path(path)
     if not path.is_file():
         raise TrajectoryError(f"trajectory file not found: {path}")
-    timestamps, poses = [], []
-    for line_number, line in enumerate(path.read_text().splitlines(), start=1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        fields = line.replace(",", " ").split()
-        where = f"{path}:{line_number}"
-        if len(fields) != 8:
-            raise TrajectoryError(
-                f"{where}: expected 8 values 'timestamp tx ty tz qx qy qz qw', got {len(fields)}: {line!r}"
-            )
-        try:
-            values = np.array([float(f) for f in fields])
-        except ValueError:
-            raise TrajectoryError(f"{where}: not a number in {line!r}") from None
-        if not np.isfinite(values).all():
-            raise TrajectoryError(
-                f"{where}: pose at timestamp {fields[0]} is not finite (nan/inf): remove or fix that line"
-            )
-        quaternion = values[4:8]
-        norm = np.linalg.norm(quaternion)
-        if norm < 1e-6:
-            raise TrajectoryError(f"{where}: quaternion at timestamp {fields[0]} is zero, not a rotation")
-        pose = np.eye(4)
-        pose[:3, :3] = quaternion_to_rotation(quaternion / norm)  # files often carry rounded, non-unit quaternions
-        pose[:3, 3] = values[1:4]
-        timestamps.append(values[0])
-        poses.append(pose)
-    if not timestamps:
+    try:
+        timestamps, poses = read_tum_trajectory(path)
+    except DatasetError as error:
+        raise TrajectoryError(str(error)) from None
+    if not len(timestamps):
         raise TrajectoryError(f"{path} contains no poses (expected lines 'timestamp tx ty tz qx qy qz qw')")
-    return Trajectory(np.array(timestamps), np.stack(poses))
+    return Trajectory(timestamps, poses)
 
 
 def write_tum(path: PathLike, trajectory: Trajectory) -> Path:
@@ -138,40 +119,21 @@ def write_tum(path: PathLike, trajectory: Trajectory) -> Path:
 def associate(t_a: np.ndarray, t_b: np.ndarray, max_dt: float) -> np.ndarray:
     """Index pairs (M, 2) matching timestamps of `t_a` to `t_b`, one-to-one, |dt| <= max_dt, ordered by `t_a`.
 
-    Like the TUM `associate.py`: among all candidate pairs, the closest in time are accepted first, and each
-    timestamp is used at most once.
+    The pairing is `eslam_core.datasets.tum.associate_timestamps` (TUM's associate.py rule: closest first, each
+    timestamp used once); here no pair at all is an error, since nothing could be compared.
     """
-    t_a = np.asarray(t_a, dtype=np.float64)
-    t_b = np.asarray(t_b, dtype=np.float64)
     if max_dt < 0:
         raise TrajectoryError(f"max_dt must be >= 0 seconds, got {max_dt}")
-    order_b = np.argsort(t_b, kind="stable")
-    sorted_b = t_b[order_b]
-    first = np.searchsorted(sorted_b, t_a - max_dt, side="left")
-    last = np.searchsorted(sorted_b, t_a + max_dt, side="right")
-    counts = last - first
-    a_index = np.repeat(np.arange(len(t_a)), counts)
-    # Position of each candidate inside its window: a running index reset at each window start.
-    offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    b_index = order_b[np.repeat(first, counts) + offsets]
-    dt = np.abs(t_a[a_index] - t_b[b_index])
-
-    used_a = np.zeros(len(t_a), dtype=bool)
-    used_b = np.zeros(len(t_b), dtype=bool)
-    pairs = []
-    for k in np.lexsort((b_index, a_index, dt)):
-        a, b = a_index[k], b_index[k]
-        if not used_a[a] and not used_b[b]:
-            used_a[a] = used_b[b] = True
-            pairs.append((a, b))
-    if not pairs:
+    t_a = np.asarray(t_a, dtype=np.float64)
+    t_b = np.asarray(t_b, dtype=np.float64)
+    pairs = associate_timestamps(t_a, t_b, max_dt)
+    if not len(pairs):
         span = lambda t: f"[{t.min():.3f}, {t.max():.3f}]" if len(t) else "[empty]"  # noqa: E731
         raise TrajectoryError(
             f"no overlapping timestamps within {max_dt} s: the first trajectory spans {span(t_a)}, the second "
             f"{span(t_b)}; check that both use the same clock and data set (or raise max_dt)"
         )
-    pairs = np.array(pairs, dtype=np.int64)
-    return pairs[np.argsort(t_a[pairs[:, 0]], kind="stable")]
+    return pairs
 
 
 def umeyama_alignment(
