@@ -358,12 +358,16 @@ INTR = Intrinsics(width=48, height=36, fx=24.0, fy=24.0, cx=23.5, cy=17.5)
 class FakeDataset:
     """Stands in for eslam_core.datasets: frames rendered from the ground-truth room at the given poses."""
 
-    def __init__(self, scene: trimesh.Trimesh, poses: np.ndarray):
+    def __init__(self, scene: trimesh.Trimesh, poses: np.ndarray, ground_truth: bool = True):
         self.intrinsics = INTR
         self.frames = []
         for i, pose in enumerate(poses):
             depth, _ = render_depth(scene, INTR, pose)
-            self.frames.append(Frame(i, i / 30.0, np.zeros((36, 48, 3), np.uint8), depth, pose))
+            self.frames.append(Frame(i, i / 30.0, np.zeros((36, 48, 3), np.uint8), depth,
+                                     pose if ground_truth else None))
+
+    def timestamps(self):
+        return np.array([frame.timestamp for frame in self.frames])
 
     def subset(self, start=0, stop=None, stride=1):
         view = FakeDataset.__new__(FakeDataset)
@@ -448,8 +452,47 @@ def test_evaluate_run_culls_both_meshes_and_scores_reconstruction(tmp_path, monk
     assert 0.3 < report["reconstruction"]["accuracy_cm"] < 1.2
     assert report["reconstruction"]["completion_ratio_percent"] > 99.0
     assert report["depth_l1"]["views"] == 10 and 0.0 < report["depth_l1"]["depth_l1_cm"] < 2.0
+    assert report["consistency"] is None and any("depth consistency: no two frames" in r for r in report["skipped"])
     assert _is_png(run / report["plots"]["depth_errors"])
     assert report["trajectory"]["ate_rmse_cm"] < 1e-6
+
+
+def test_evaluate_run_scores_depth_consistency_with_and_without_ground_truth(tmp_path, monkeypatch):
+    scene = room()
+    traj = room_trajectory(30)
+    shaken = traj.poses.copy()
+    shaken[:, :3, 3] += np.random.default_rng(1).normal(0.0, 0.02, (len(shaken), 3))  # positions ~3.5 cm off
+    estimate = Trajectory(traj.timestamps, shaken)
+    data = tmp_path / "data"
+    data.mkdir()
+    fake = types.ModuleType("eslam_core.datasets")
+    fake.open_dataset = lambda path, kind="auto", **overrides: FakeDataset(scene, traj.poses)
+    monkeypatch.setitem(sys.modules, "eslam_core.datasets", fake)
+
+    run = make_run(tmp_path / "run", traj, estimate, data=data)
+    report = evaluate_run(run, depth_views=0)
+    consistency = report["consistency"]
+    assert consistency["frames"] == 30 and consistency["estimate"]["pairs"] >= 15
+    assert consistency["reference"]["median_mm"] < 0.01  # exact poses, exact depth
+    assert consistency["reference"]["agree_percent"] == 100.0
+    assert consistency["estimate"]["median_mm"] > 5.0
+    assert consistency["estimate"]["pairs"] == consistency["reference"]["pairs"]  # scored on the same pairs
+    assert _is_png(run / report["plots"]["depth_consistency"])
+    markdown = render_markdown(report)
+    assert "## Depth consistency" in markdown and "reference poses" in markdown
+
+    # without ground truth (no groundtruth.txt, frames without poses) the estimate is still scored
+    fake.open_dataset = lambda path, kind="auto", **overrides: FakeDataset(scene, traj.poses, ground_truth=False)
+    (run / "groundtruth.txt").unlink()
+    report = evaluate_run(run, depth_views=0, plots=False)
+    assert report["trajectory"] is None and report["consistency"]["reference"] is None
+    assert report["consistency"]["estimate"]["median_mm"] > 5.0
+    assert "reference poses" not in render_markdown(report)
+
+    # no data set: skipped, with the reason
+    report = evaluate_run(run, data=tmp_path / "moved", depth_views=0, plots=False)
+    assert report["consistency"] is None and any("depth consistency: data set not found" in r
+                                                 for r in report["skipped"])
 
 
 def test_cli_evaluates_compares_and_reports_errors(tmp_path, capsys):

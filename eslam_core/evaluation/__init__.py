@@ -3,10 +3,19 @@
 - trajectory: TUM files, timestamp association, Umeyama alignment, ATE and RPE;
 - reconstruction: surface sampling, accuracy / completion / completion ratio, ICP, mesh checks;
 - depth_l1: depth of both meshes rendered from random views inside the scene;
+- consistency: depth consistency of a set of poses (frames' depths warped into each other), no ground truth needed;
 - plots, report, cli: figures, report.json / report.md for a run directory, and `eslam eval`
   (imported on demand: `from eslam_core.evaluation.report import evaluate_run`).
 Culling of meshes to the observed surface lives in eslam_core.outputs.culling (mesh extraction uses it too).
 """
+from eslam_core.evaluation.consistency import (
+    ConsistencyResult,
+    KeyframeConsistency,
+    PairConsistency,
+    choose_pairs,
+    keyframe_consistency,
+    sequence_consistency,
+)
 from eslam_core.evaluation.depth_l1 import DepthL1Result, depth_l1
 from eslam_core.evaluation.reconstruction import (
     MeshError,
@@ -32,7 +41,10 @@ from eslam_core.evaluation.trajectory import (
 
 __all__ = [
     "AteResult",
+    "ConsistencyResult",
     "DepthL1Result",
+    "KeyframeConsistency",
+    "PairConsistency",
     "MeshError",
     "ReconstructionResult",
     "RpeResult",
@@ -41,13 +53,16 @@ __all__ = [
     "associate",
     "ate",
     "check_mesh",
+    "choose_pairs",
     "depth_l1",
     "icp_align",
+    "keyframe_consistency",
     "load_mesh",
     "reconstruction_metrics",
     "read_tum",
     "rpe",
     "sample_surface",
+    "sequence_consistency",
     "umeyama_alignment",
     "write_tum",
 ]

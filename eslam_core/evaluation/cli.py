@@ -1,6 +1,7 @@
 """`eslam eval`: evaluate a run directory, or compare two evaluated runs.
 
-    eslam eval RUN_DIR [--gt-mesh PLY] [--data PATH] [--align none|icp] [--points N] [--depth-views N] [--no-plots]
+    eslam eval RUN_DIR [--gt-mesh PLY] [--data PATH] [--align none|icp] [--points N] [--depth-views N]
+                       [--consistency-frames N] [--no-plots]
     eslam eval --compare RUN_A RUN_B [--out compare.md]
 
 Also runnable as `python -m eslam_core.evaluation.cli ...`. Writes RUN_DIR/report.json, RUN_DIR/report.md and
@@ -16,6 +17,7 @@ from typing import Optional, Sequence
 
 from eslam_core.evaluation.report import (
     ALIGN_CHOICES,
+    CONSISTENCY_FRAMES,
     RunDirectoryError,
     compare_runs,
     evaluate_run,
@@ -62,6 +64,9 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
                         help="surface samples per mesh for accuracy / completion (default: 450000)")
     parser.add_argument("--depth-views", type=_count(0), default=1000,
                         help="random views for depth L1; 0 disables it (default: 1000)")
+    parser.add_argument("--consistency-frames", type=_count(0), default=CONSISTENCY_FRAMES,
+                        help="frames (evenly spread) of the depth consistency score, which needs the data set but "
+                             f"no ground truth; 0 disables it (default: {CONSISTENCY_FRAMES})")
     parser.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
     return parser
 
@@ -87,6 +92,7 @@ def run_eval(args: argparse.Namespace) -> int:
             n_points=args.points,
             depth_views=args.depth_views,
             plots=not args.no_plots,
+            consistency_frames=args.consistency_frames,
         )
         write_report_json(report, run_dir / "report.json")
         write_report_markdown(report, run_dir / "report.md")

@@ -7,7 +7,7 @@ many runs are evaluated in one process.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence, Union
+from typing import Optional, Sequence, Union
 
 import matplotlib
 
@@ -97,4 +97,36 @@ def plot_depth_errors(views: Sequence[tuple[np.ndarray, np.ndarray]], path: Path
             ax.set_title(f"view {row}: {title}", fontsize=9)
             ax.axis("off")
             figure.colorbar(shown, ax=ax, fraction=0.035, pad=0.02, extend="max" if column == 2 else "neither")
+    return _save(figure, path)
+
+
+def plot_consistency(estimate_pairs: Sequence, reference_pairs: Optional[Sequence], path: PathLike,
+                     agree_cm: float = 3.0) -> Path:
+    """Depth consistency over the sequence: each pair's median |residual| (mm) and agreement (%), placed at its
+    later frame; near pairs as lines, far pairs (revisits) as dots; estimated poses red, reference poses green.
+
+    The pairs are `consistency.PairConsistency` records (first, second, kind, median_mm, agree_fraction).
+    """
+    figure = Figure(figsize=(10, 6))
+    panels = (("median_mm", "median |depth residual| [mm]"), ("agree_fraction", f"agreeing within {agree_cm:g} cm [%]"))
+    sets = [("estimate", estimate_pairs, "tab:red")]
+    if reference_pairs:
+        sets.append(("reference", reference_pairs, "tab:green"))
+    for row, (field, label) in enumerate(panels):
+        ax = figure.add_subplot(2, 1, row + 1)
+        for name, pairs, colour in sets:
+            scale = 100.0 if field == "agree_fraction" else 1.0
+            near = sorted((p.second, scale * getattr(p, field)) for p in pairs if p.kind != "far")
+            far = [(p.second, scale * getattr(p, field)) for p in pairs if p.kind == "far"]
+            if near:
+                ax.plot(*zip(*near), color=colour, linewidth=1.0, label=f"{name}, near pairs")
+            if far:
+                ax.plot(*zip(*far), "o", color=colour, markersize=3, alpha=0.6, label=f"{name}, far pairs")
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+        if row == 0:
+            ax.set_ylim(bottom=0)
+            ax.legend(loc="upper left", fontsize=8)
+    ax.set_xlabel("frame (the later frame of each pair)")
+    figure.suptitle("Depth consistency: frames' depths warped into each other with the poses")
     return _save(figure, path)

@@ -2,6 +2,8 @@
 
 What is evaluated depends on what the run and the data set provide:
 - trajectory (needs `groundtruth.txt`): ATE after rigid alignment, RPE per frame and per metre;
+- depth consistency (needs the data set's depth images, not ground truth): the frames' depths warped into each
+  other with the estimated poses (`consistency.py`), and with the reference poses where the data set has them;
 - reconstruction (needs `mesh.ply` and a ground-truth mesh): both meshes culled to what the run's cameras observed
   (ground-truth poses, sensor depths, the run's truncation), then accuracy / completion / completion ratio /
   precision / recall / F-score, and depth L1 over random views;
@@ -25,15 +27,23 @@ import yaml
 
 from eslam_core.camera import Intrinsics
 from eslam_core.outputs.culling import keep_visible_faces, visible_mask
+from eslam_core.evaluation.consistency import (
+    FAR_FRAMES,
+    NEAR_FRAMES,
+    ConsistencyResult,
+    choose_pairs,
+    sequence_consistency,
+)
 from eslam_core.evaluation.depth_l1 import depth_l1
 from eslam_core.evaluation.reconstruction import check_mesh, icp_align, load_mesh, reconstruction_metrics
-from eslam_core.evaluation.trajectory import Trajectory, ate, path_length, read_tum, rpe
+from eslam_core.evaluation.trajectory import Trajectory, associate, ate, path_length, read_tum, rpe
 
 log = logging.getLogger(__name__)
 
 PathLike = Union[str, Path]
 ALIGN_CHOICES = ("none", "icp")
 CAMERAS_PER_CHUNK = 16  # depth images held in memory at once while culling
+CONSISTENCY_FRAMES = 100  # frames (evenly spread) whose depths the consistency score warps into each other
 
 
 class RunDirectoryError(ValueError):
@@ -184,29 +194,41 @@ def _camera_overrides(config: Optional[dict]) -> dict:
     return overrides
 
 
-def observing_cameras(
-    summary: dict, data: Optional[PathLike], estimate: Trajectory, max_cameras: int, config: Optional[dict] = None
-) -> ObservingCameras:
-    """The run's frames (every frame, or a stride keeping at most `max_cameras`) with their sensor depth."""
+def data_set_path(summary: dict, data: Optional[PathLike]) -> Optional[Path]:
+    """Where the run's data set is (`data` overrides summary.json's), None if it is not there."""
     recorded = data if data is not None else summary.get("data")
-    if not recorded or not Path(recorded).exists():
+    return Path(recorded) if recorded and Path(recorded).exists() else None
+
+
+def open_run_dataset(summary: dict, data: Optional[PathLike], config: Optional[dict], purpose: str):
+    """The run's frames of its data set (same reader, camera overrides and frame range as the run)."""
+    data_path = data_set_path(summary, data)
+    if data_path is None:
+        recorded = data if data is not None else summary.get("data")
         raise RunDirectoryError(
-            f"data set not found at {recorded or '(summary.json has no data path)'}: culling needs the run's "
+            f"data set not found at {recorded or '(summary.json has no data path)'}: {purpose} needs the run's "
             "depth images; pass the data set location with --data"
         )
-    data_path, kind = Path(recorded), summary.get("dataset_kind")
     try:
         from eslam_core.datasets import open_dataset
     except ImportError as error:
         raise RunDirectoryError(
-            f"cannot load data sets ({error}): eslam_core.datasets is required for culling"
+            f"cannot load data sets ({error}): eslam_core.datasets is required for {purpose}"
         ) from None
-    dataset = open_dataset(data_path, kind or "auto", **_camera_overrides(config))
+    dataset = open_dataset(data_path, summary.get("dataset_kind") or "auto", **_camera_overrides(config))
     start, stop, stride = (list(summary.get("frames") or [0, None, 1]) + [None, None, None])[:3]
     dataset = dataset.subset(start or 0, stop, stride or 1)
-    n = len(dataset)
-    if n == 0:
+    if len(dataset) == 0:
         raise RunDirectoryError(f"the run's frames {summary.get('frames')} select no frame of {data_path}")
+    return dataset
+
+
+def observing_cameras(
+    summary: dict, data: Optional[PathLike], estimate: Trajectory, max_cameras: int, config: Optional[dict] = None
+) -> ObservingCameras:
+    """The run's frames (every frame, or a stride keeping at most `max_cameras`) with their sensor depth."""
+    dataset = open_run_dataset(summary, data, config, "culling")
+    n = len(dataset)
     camera_stride = math.ceil(n / max_cameras)
     return ObservingCameras(dataset.intrinsics, dataset, tuple(range(0, n, camera_stride)), estimate)
 
@@ -232,6 +254,58 @@ def cull_to_observed(
 
 
 # ---------------------------------------------------------------------------------------------------------------
+# Depth consistency section
+
+
+def _consistency_section(dataset, estimate: Trajectory, max_frames: int) -> tuple[
+        Optional[dict], Optional[ConsistencyResult], Optional[ConsistencyResult]]:
+    """Depth consistency of the estimated poses and, where the data set has them, of the reference poses; Nones
+    when no two frames see the same surface (a run of a few frames).
+
+    Frames: the run's frames that have an estimated pose, at most `max_frames` evenly spread. Pairs are chosen once,
+    by view overlap under the estimated poses (what a user without ground truth has), and both sets of poses are
+    scored on the same pairs; pairs whose frames lack a reference pose are left out of both.
+    """
+    matches = associate(dataset.timestamps(), estimate.timestamps, 0.02)  # (run frame, estimated pose)
+    step = max(1, math.ceil(len(matches) / max_frames))
+    chosen = matches[::step]
+    frames = [dataset[int(k)] for k in chosen[:, 0]]
+    depths = [np.asarray(frame.depth, dtype=np.float32) for frame in frames]
+    numbers = [int(k) for k in chosen[:, 0]]
+    estimated = estimate.poses[chosen[:, 1]]
+    reference = np.stack([frame.pose if frame.pose is not None else np.full((4, 4), np.nan) for frame in frames])
+    has_reference = np.isfinite(reference).all(axis=(1, 2))
+    pairs = choose_pairs(depths, estimated, numbers, dataset.intrinsics)
+    if has_reference.any():
+        pairs = [(k, m, kind) for k, m, kind in pairs if has_reference[k] and has_reference[m]]
+    if not pairs:
+        return None, None, None
+    options = dict(frame_numbers=numbers)
+    of_estimate = sequence_consistency(depths, estimated, pairs, dataset.intrinsics, **options)
+    of_reference = (sequence_consistency(depths, reference, pairs, dataset.intrinsics, **options)
+                    if has_reference.any() else None)
+    section = {
+        "frames": len(frames),
+        "frame_step": step,
+        "pairs_chosen_by": f"view overlap under the estimated poses: each frame with the first frame {NEAR_FRAMES} "
+                           f"or more on (near) and the latest frame {FAR_FRAMES} or more on seeing the same "
+                           f"surface (far)",
+        "estimate": of_estimate.summary(),
+        "reference": None if of_reference is None else of_reference.summary(),
+    }
+    return section, of_estimate, of_reference
+
+
+def _consistency_plot(of_estimate: ConsistencyResult, of_reference: Optional[ConsistencyResult],
+                      run_dir: Path) -> dict[str, str]:
+    from eslam_core.evaluation import plots as figures
+
+    path = figures.plot_consistency(of_estimate.pairs, None if of_reference is None else of_reference.pairs,
+                                    run_dir / "plots" / "depth_consistency.png", agree_cm=100 * of_estimate.agree_m)
+    return {"depth_consistency": _relative(path, run_dir)}
+
+
+# ---------------------------------------------------------------------------------------------------------------
 # Evaluation
 
 
@@ -243,6 +317,7 @@ class EvaluationOptions:
     plots: bool = True
     max_cameras: int = 300  # culling cameras: every frame, or a stride keeping at most this many
     seed: int = 0
+    consistency_frames: int = CONSISTENCY_FRAMES  # 0 = no depth consistency score
 
 
 def evaluate_run(
@@ -255,15 +330,17 @@ def evaluate_run(
     plots: bool = True,
     max_cameras: int = 300,
     seed: int = 0,
+    consistency_frames: int = CONSISTENCY_FRAMES,
 ) -> dict:
     """All metrics of one run as a JSON-ready dict (distances in cm, ratios in %); plots go to RUN_DIR/plots/.
 
     `gt_mesh` defaults to `<scene>_mesh.ply` next to the data set (NICE-SLAM layout); `data` overrides the data
     set path recorded in summary.json; `align="icp"` aligns the reconstruction to the ground-truth mesh first.
+    `consistency_frames` bounds the frames of the depth consistency score (0 skips it).
     """
     if align not in ALIGN_CHOICES:
         raise RunDirectoryError(f"align must be one of {ALIGN_CHOICES}, got {align!r}")
-    options = EvaluationOptions(align, n_points, depth_views, plots, max_cameras, seed)
+    options = EvaluationOptions(align, n_points, depth_views, plots, max_cameras, seed, consistency_frames)
     started = time.perf_counter()
     run = read_run(run_dir)
     summary = run.summary
@@ -282,6 +359,7 @@ def evaluate_run(
             for key in ("seconds_per_frame", "frames_per_second", "peak_memory_mb", "parameter_count")
         },
         "trajectory": None,
+        "consistency": None,
         "reconstruction": None,
         "depth_l1": None,
         "plots": {},
@@ -300,6 +378,24 @@ def evaluate_run(
         if options.plots:
             report["plots"].update(_trajectory_plots(ate_result, run.run_dir))
     report["seconds"]["trajectory"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    if options.consistency_frames <= 0:
+        report["skipped"].append("depth consistency: disabled (--consistency-frames 0)")
+    elif data_set_path(summary, data_path) is None:
+        report["skipped"].append(f"depth consistency: data set not found at {data_path or '(no data path)'} "
+                                 "(pass --data)")
+    else:
+        dataset = open_run_dataset(summary, data_path, report["config"], "the depth consistency score")
+        report["consistency"], of_estimate, of_reference = _consistency_section(
+            dataset, estimate, options.consistency_frames)
+        if of_estimate is None:
+            report["skipped"].append(
+                f"depth consistency: no two frames {NEAR_FRAMES} or more apart see the same surface under the "
+                "estimated poses (too few frames)")
+        elif options.plots:
+            report["plots"].update(_consistency_plot(of_estimate, of_reference, run.run_dir))
+    report["seconds"]["consistency"] = time.perf_counter() - clock
 
     gt_mesh_path = Path(gt_mesh) if gt_mesh is not None else None
     if gt_mesh_path is None and data_path:
@@ -479,6 +575,8 @@ def render_markdown(report: dict) -> str:
     else:
         lines += ["Not evaluated (see Skipped).", ""]
 
+    lines += _consistency_markdown(report.get("consistency"))
+
     recon = report.get("reconstruction")
     lines += ["## Reconstruction", ""]
     if recon:
@@ -546,6 +644,28 @@ def render_markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
+def _consistency_markdown(consistency: Optional[dict]) -> list[str]:
+    lines = ["## Depth consistency (needs no ground truth)", ""]
+    if not consistency:
+        return lines + ["Not evaluated (see Skipped).", ""]
+    scored = [("estimated poses", consistency["estimate"]), ("reference poses", consistency.get("reference"))]
+    scored = [(name, values) for name, values in scored if values]
+    header = ["", *(name for name, _ in scored)]
+    rows = [["median abs. depth residual, all pairs", *(_number(v["median_mm"], 1, "mm") for _, v in scored)],
+            [f"pixels agreeing within {consistency['estimate']['agree_within_cm']:g} cm",
+             *(_number(v["agree_percent"], 1, "%") for _, v in scored)]]
+    for kind in sorted(consistency["estimate"]["by_kind"]):
+        of_kind = [v["by_kind"].get(kind) for _, v in scored]
+        pairs = of_kind[0]["pairs"]
+        rows.append([f"median, {kind} pairs ({pairs})",
+                     *(_number(k["median_mm"] if k else None, 1, "mm") for k in of_kind)])
+    lines += _table(rows, header)
+    lines += ["", f"{consistency['frames']} frames (every {consistency['frame_step']}th of the run); pairs chosen by "
+                  f"{consistency['pairs_chosen_by']}. Each pair's depths are warped into each other both ways; "
+                  "points hidden in the other view are not compared.", ""]
+    return lines
+
+
 def write_report_markdown(report: dict, path: PathLike) -> Path:
     path = Path(path)
     path.write_text(render_markdown(report))
@@ -562,6 +682,9 @@ _COMPARED = (
     ("RPE/frame rotation [deg]", ("trajectory", "rpe_per_frame", "rot_rmse_deg"), 3),
     ("RPE/metre translation [cm]", ("trajectory", "rpe_per_metre", "trans_rmse_cm"), 2),
     ("RPE/metre rotation [deg]", ("trajectory", "rpe_per_metre", "rot_rmse_deg"), 2),
+    ("Depth consistency, estimate [mm]", ("consistency", "estimate", "median_mm"), 1),
+    ("Depth consistency, reference [mm]", ("consistency", "reference", "median_mm"), 1),
+    ("Depth agreement, estimate [%]", ("consistency", "estimate", "agree_percent"), 1),
     ("Accuracy [cm]", ("reconstruction", "accuracy_cm"), 2),
     ("Completion [cm]", ("reconstruction", "completion_cm"), 2),
     ("Completion ratio [%]", ("reconstruction", "completion_ratio_percent"), 2),
