@@ -1,8 +1,6 @@
 """What a run leaves behind: checkpoint, trajectory (TUM format) and mesh of the map."""
 from __future__ import annotations
 
-import pickle
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -13,11 +11,8 @@ from eslam_core.outputs.culling import visible_mask
 from eslam_core.evaluation.trajectory import Trajectory, write_tum
 from eslam_core.geometry import depth_points_world
 from eslam_core.outputs.mesh import MeshSettings, extract_mesh
-from eslam_core.slam import SLAM
-
-
-class CheckpointError(ValueError):
-    pass
+from eslam_core.outputs.map_file import CheckpointError, read_checkpoint
+from eslam_core.slam import CHECKPOINT_VERSION, SLAM
 
 
 def save_checkpoint(slam: SLAM, path: Path) -> Path:
@@ -29,16 +24,13 @@ def save_checkpoint(slam: SLAM, path: Path) -> Path:
 
 
 def load_checkpoint(path: Path) -> SLAM:
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path} (an `eslam run --out DIR` writes DIR/checkpoint.pt)")
+    """The SLAM state saved in a checkpoint, read safely (map_file.py): errors are one CheckpointError line."""
+    state = read_checkpoint(path, CHECKPOINT_VERSION)
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as e:
-        raise CheckpointError(f"{path} is not a readable ESLAM checkpoint ({e}); re-run `eslam run`") from None
-    if not isinstance(state, dict) or "field" not in state:
-        raise CheckpointError(f"{path} is not an ESLAM checkpoint (no map inside)")
-    return SLAM.from_state_dict(state)
+        return SLAM.from_state_dict(state)
+    except (KeyError, IndexError, TypeError, ValueError, RuntimeError, AttributeError) as e:
+        raise CheckpointError(f"{path} is damaged (incomplete map: {type(e).__name__} {e}); re-run `eslam run` "
+                              f"to make a new one") from None
 
 
 def estimated_trajectory(slam: SLAM) -> Trajectory:

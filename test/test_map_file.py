@@ -1,0 +1,125 @@
+"""Map files are read safely: nothing in a file runs, and every bad file gets one line naming what it is."""
+from __future__ import annotations
+
+import builtins
+import os
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from eslam_core.cli import main as eslam
+from eslam_core.config import load_config
+from eslam_core.datasets.synthetic import default_intrinsics
+from eslam_core.outputs.export import load_checkpoint, save_checkpoint
+from eslam_core.outputs.map_file import CheckpointError, read_checkpoint
+from eslam_core.slam import CHECKPOINT_VERSION, SLAM
+
+
+class CreatesFile:
+    """Unpickling this calls open(marker, "w"): the file appears if, and only if, the pickle's code ran."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return builtins.open, (self.marker, "w")
+
+
+def one_line_error(path, version=CHECKPOINT_VERSION) -> str:
+    with pytest.raises(CheckpointError) as info:
+        read_checkpoint(path, version)
+    message = str(info.value)
+    assert "\n" not in message and "weights_only" not in message and len(message) < 300, message
+    assert str(path) in message
+    return message
+
+
+@pytest.fixture
+def good(tmp_path):
+    state = {"version": 7, "map": {"planes": torch.arange(1000.0).reshape(10, 100)}, "name": "room", "n": 3}
+    path = tmp_path / "good.pt"
+    torch.save(state, path)
+    return path, state
+
+
+def test_a_checkpoint_reads_back(good):
+    path, state = good
+    loaded = read_checkpoint(path, 7)
+    assert loaded["name"] == "room" and loaded["n"] == 3
+    assert torch.equal(loaded["map"]["planes"], state["map"]["planes"])
+
+
+def test_an_empty_slam_state_round_trips(tmp_path):
+    """save_checkpoint / load_checkpoint on a SLAM that has seen no frame yet (the cheapest real state)."""
+    cfg = load_config("demo")
+    path = save_checkpoint(SLAM(cfg, default_intrinsics(64, 48)), tmp_path / "checkpoint.pt")
+    slam = load_checkpoint(path)
+    assert slam.cfg.to_dict() == cfg.to_dict() and slam.input_intrinsics == default_intrinsics(64, 48)
+
+
+def test_random_bytes_empty_and_text_files_are_not_checkpoints(tmp_path):
+    files = {"random.pt": np.random.default_rng(0).bytes(5000), "empty.pt": b"", "notes.pt": b"hello map\n",
+             "fake_zip.pt": b"PK\x03\x04" + np.random.default_rng(1).bytes(3000)}
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+    for name in ("random.pt", "empty.pt", "notes.pt"):
+        assert "not an ESLAM checkpoint" in one_line_error(tmp_path / name)
+    assert "damaged" in one_line_error(tmp_path / "fake_zip.pt")
+
+
+def test_truncated_and_bit_flipped_files_are_damaged(good, tmp_path):
+    path, _ = good
+    data = path.read_bytes()
+    (tmp_path / "half.pt").write_bytes(data[: len(data) // 2])
+    flipped = bytearray(data)
+    planes_start = data.index(np.float32(500.0).tobytes())  # inside the tensor's bytes
+    flipped[planes_start] ^= 0x01  # 500.0 -> 500.00006: torch.load alone would not notice
+    (tmp_path / "flipped.pt").write_bytes(bytes(flipped))
+    assert "damaged" in one_line_error(tmp_path / "half.pt")
+    message = one_line_error(tmp_path / "flipped.pt")
+    assert "damaged" in message and "corrupt data" in message
+
+
+@pytest.mark.parametrize("container", ["pickle", "torch.save"])
+def test_a_file_with_code_is_refused_and_the_code_never_runs(tmp_path, container):
+    marker = tmp_path / "code_ran"
+    payload = {"version": CHECKPOINT_VERSION, "map": CreatesFile(marker)}
+    path = tmp_path / "evil.pt"
+    if container == "pickle":
+        with path.open("wb") as f:
+            pickle.dump(payload, f)
+    else:
+        torch.save(payload, path)
+    pickle.loads(pickle.dumps(CreatesFile(tmp_path / "probe")))  # the payload does work when unpickled...
+    assert (tmp_path / "probe").exists()
+    message = one_line_error(path)  # ... and reading the file as a map does not run it
+    assert not marker.exists()
+    assert "not an ESLAM checkpoint" in message
+    with pytest.raises(CheckpointError):
+        load_checkpoint(path)
+    assert not marker.exists()
+
+
+def test_other_versions_and_other_torch_files_are_named(tmp_path, good):
+    path, _ = good
+    message = one_line_error(path, version=8)
+    assert "version 7" in message and "version 8" in message
+    torch.save(torch.zeros(3), tmp_path / "tensor.pt")
+    assert "without a map inside" in one_line_error(tmp_path / "tensor.pt")
+    torch.save({"version": CHECKPOINT_VERSION, "map": {}}, tmp_path / "incomplete.pt")
+    with pytest.raises(CheckpointError, match="damaged") as info:
+        load_checkpoint(tmp_path / "incomplete.pt")
+    assert "\n" not in str(info.value)
+
+
+def test_eslam_mesh_reports_a_bad_file_in_one_line(tmp_path, capsys):
+    bad = tmp_path / "checkpoint.pt"
+    bad.write_bytes(os.urandom(2000))
+    assert eslam(["mesh", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("eslam: error:") and "\n" not in err and "weights_only" not in err
+    assert not list(tmp_path.glob("*.ply"))
+    assert eslam(["mesh", str(tmp_path / "missing.pt")]) == 2
+    assert "not found" in capsys.readouterr().err
