@@ -1,0 +1,325 @@
+"""Meshing the live map in a process of its own, at the lowest CPU priority: the mesh preview must not take time
+from tracking and mapping.
+
+Why a process: a thread would share the caller's interpreter lock, and a low-priority thread that holds it while
+the CPU is busy stalls the caller's other threads (the node's pose publication) until it is scheduled again; the
+scheduler also cannot tell such a thread from the caller. A process at nice 19 gets only the CPU time that
+tracking and mapping leave (about 1.5 % of a core while both are busy), and nothing of the caller's.
+
+Protocol (one job at a time; the caller waits for a job's `MeshUpdate` before it submits the next):
+    caller                                   mesh process
+    submit(MeshSnapshot)  ---- map ---->     IncrementalMesher.update(view, budget) ----+
+    submit(None)          ---- continue -->  (same map: the blocks still dirty)          |
+    poll() -> MeshUpdate  <--- blocks -------------------------------------------------+
+    reset()               ---- reset --->    forget everything (a new map)
+A snapshot carries the field and every keyframe pose, but only the depth images the process does not have yet.
+Blocks come back as triangle soups (corners float64, RGBA float32), thinned to the triangle budget, ready to be
+written into a message without another copy.
+"""
+from __future__ import annotations
+
+import io
+import logging
+import multiprocessing
+import os
+import signal
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Hashable, Optional
+
+import numpy as np
+import torch
+
+from eslam_core.camera import Intrinsics
+from eslam_core.outputs.mesh import MeshSettings
+from eslam_core.outputs.mesh_blocks import (BlockLayout, IncrementalMesher, Key, MapView, map_view, thinning_stride,
+                                            triangle_soup)
+
+log = logging.getLogger("eslam")
+
+# Most triangles in one block's soup: RViz and Foxglove draw a marker as one vertex buffer; a block over it is
+# thinned like the whole mesh is over its budget.
+MAX_BLOCK_TRIANGLES = 65536
+START_TIMEOUT_S = 60.0
+_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
+
+class MesherCrashed(RuntimeError):
+    """The mesh process died; the message has its exit code or traceback."""
+
+
+@dataclass
+class MeshSnapshot:
+    """The map as the mesh process needs it (see `snapshot_for_meshing`)."""
+
+    field: bytes  # the field module, torch.save'd: decoders and feature planes
+    bound: np.ndarray  # (2, 3)
+    truncation: float
+    intrinsics: Intrinsics
+    keyframe_ids: list[Hashable]
+    poses: np.ndarray  # (K, 4, 4)
+    new_depths: dict  # keyframe id -> (H, W) float32 depth image, for the keyframes the process has not got yet
+
+
+@dataclass
+class MeshUpdate:
+    """What a job changed: blocks to (re)draw and blocks to delete, and what it cost."""
+
+    epoch: int
+    changed: dict[Key, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # soups: corners, colours
+    removed: list[Key] = field(default_factory=list)
+    blocks: int = 0  # non-empty blocks after the update
+    triangles: int = 0  # triangles sent for them in all (after thinning)
+    stride: int = 1  # every stride-th triangle is sent
+    meshed: int = 0  # blocks meshed by the job
+    pending: int = 0  # dirty blocks left for the next job
+    wall_s: float = 0.0
+    cpu_s: float = 0.0
+    error: str = ""  # the traceback of a job that failed (the process goes on)
+
+
+def snapshot_for_meshing(slam, have: set) -> MeshSnapshot:
+    """A SLAM state (a runtime's `snapshot()`) as a MeshSnapshot; `have`: keyframe ids whose depth was sent."""
+    view = map_view(slam, skip_depths=have)
+    buffer = io.BytesIO()
+    torch.save(slam.map.field, buffer)
+    return MeshSnapshot(buffer.getvalue(), view.bound, view.truncation, view.intrinsics, list(view.keyframe_ids),
+                        view.poses, {k: d for k, d in zip(view.keyframe_ids, view.depths) if d is not None})
+
+
+@dataclass(frozen=True)
+class _Setup:
+    resolution: float
+    block_size: float
+    budget_s: float
+    triangle_budget: int
+    nice: int
+    parent_pid: int
+
+
+@dataclass(frozen=True)
+class _Job:
+    epoch: int
+    snapshot: Optional[MeshSnapshot]  # None: continue on the last map
+
+
+@dataclass(frozen=True)
+class _Reset:
+    epoch: int
+
+
+# ------------------------------------------------------------------------------------------------ the process
+
+
+class _Worker:
+    def __init__(self, setup: _Setup) -> None:
+        self.setup = setup
+        self.layout = BlockLayout.of(setup.block_size, setup.resolution)
+        self.reset()
+
+    def reset(self) -> None:
+        self.mesher: Optional[IncrementalMesher] = None
+        self.view: Optional[MapView] = None
+        self.depths: dict = {}
+        self.stride = 1
+
+    def run(self, job: _Job) -> MeshUpdate:
+        wall, cpu = time.monotonic(), time.process_time()
+        if job.snapshot is not None:
+            self.view = self._view(job.snapshot)
+        if self.view is None:
+            return MeshUpdate(job.epoch)
+        if self.mesher is None:
+            settings = MeshSettings(resolution=self.layout.resolution, truncation=self.view.truncation)
+            self.mesher = IncrementalMesher(self.layout, settings)
+        changes = self.mesher.update(self.view, self.setup.budget_s)
+        blocks = self.mesher.blocks
+        stride = thinning_stride(sum(b.triangles for b in blocks.values()), self.setup.triangle_budget)
+        resend = blocks if stride != self.stride else changes.changed  # a new stride thins every block anew
+        self.stride = stride
+        soups = {key: triangle_soup(blocks[key], max(stride, thinning_stride(blocks[key].triangles,
+                                                                           MAX_BLOCK_TRIANGLES)))
+                 for key in resend}
+        triangles = sum(-(-b.triangles // max(stride, thinning_stride(b.triangles, MAX_BLOCK_TRIANGLES)))
+                        for b in blocks.values())
+        return MeshUpdate(job.epoch, soups, changes.removed, len(blocks), triangles, stride, changes.meshed,
+                          changes.pending, time.monotonic() - wall, time.process_time() - cpu)
+
+    def _view(self, snapshot: MeshSnapshot) -> MapView:
+        field_ = torch.load(io.BytesIO(snapshot.field), weights_only=False).eval()
+        self.depths.update(snapshot.new_depths)
+        missing = [k for k in snapshot.keyframe_ids if k not in self.depths]
+        if missing:
+            raise ValueError(f"the snapshot lacks the depth images of keyframes {missing[:5]}: build it with the "
+                             f"mesher's have() after its last update")
+        self.depths = {k: self.depths[k] for k in snapshot.keyframe_ids}  # dropped keyframes are forgotten
+        return MapView(field_.sdf, field_.color, snapshot.bound, snapshot.truncation, snapshot.intrinsics,
+                       list(snapshot.keyframe_ids), snapshot.poses, [self.depths[k] for k in snapshot.keyframe_ids])
+
+
+def _exit_with_parent(parent_pid: int) -> None:
+    """A thread that ends the process once its parent is gone (even SIGKILLed: the pipe alone would not tell a
+    process blocked in recv)."""
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(1.0)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def _serve(connection, setup: _Setup) -> None:
+    """The mesh process: jobs in, MeshUpdates out, until told to stop or the caller is gone."""
+    for sig in _STOP_SIGNALS:  # Ctrl-C reaches the whole process group; the caller decides when this one stops
+        signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+    _exit_with_parent(setup.parent_pid)
+    try:
+        os.nice(setup.nice)
+    except (AttributeError, OSError):  # no nice on this platform: it still runs in its own process
+        pass
+    torch.set_num_threads(1)
+    worker = _Worker(setup)
+    connection.send("ready")
+    while True:
+        try:
+            message = connection.recv()
+        except EOFError:  # the caller closed its end
+            return
+        if message is None:
+            return
+        if isinstance(message, _Reset):
+            worker.reset()
+            continue
+        try:
+            update = worker.run(message)
+        except Exception:  # noqa: BLE001 - reported to the caller; the next job starts from a fresh mesher
+            update = MeshUpdate(message.epoch, error=traceback.format_exc())
+            worker.reset()
+        connection.send(update)
+
+
+# ------------------------------------------------------------------------------------------------ the caller's side
+
+
+class BackgroundMesher:
+    """The caller's handle on the mesh process (started at the first `submit`). Not thread-safe: one caller thread,
+    or a lock around it."""
+
+    def __init__(self, resolution: float, block_size: float = 1.0, budget_s: float = 0.5,
+                 triangle_budget: int = 100_000, nice: int = 19) -> None:
+        BlockLayout.of(block_size, resolution)  # a clear error now rather than in the process
+        if not (budget_s > 0 and triangle_budget >= 1 and 0 <= nice <= 19):
+            raise ValueError(f"mesh time budget ({budget_s} s) must be > 0, triangle budget ({triangle_budget}) >= 1 "
+                             f"and nice ({nice}) in 0..19")
+        self.setup = _Setup(float(resolution), float(block_size), float(budget_s), int(triangle_budget), int(nice),
+                            os.getpid())
+        self.epoch = 0
+        self.busy = False
+        self.pending = 0  # dirty blocks the process reported left
+        self._have: set = set()  # keyframe ids whose depth images the process has
+        self._process: Any = None
+        self._connection: Any = None
+
+    @property
+    def running(self) -> bool:
+        return self._process is not None and self._process.is_alive()
+
+    def start(self) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self._connection, child = ctx.Pipe()
+        self._process = ctx.Process(target=_serve, args=(child, self.setup), name="eslam-mesher", daemon=True)
+        # The child starts with the stop signals blocked, until it ignores them (see _serve).
+        previous = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+        try:
+            self._process.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        child.close()
+        try:
+            started = self._connection.poll(START_TIMEOUT_S) and self._receive() == "ready"
+        except (EOFError, OSError):
+            started = False
+        if not started:
+            code = self._process.exitcode
+            self.close()
+            raise MesherCrashed(f"the mesh process did not start (exit code {code}; see its output above)")
+        self.busy, self.pending, self._have = False, 0, set()
+
+    def submit(self, snapshot: Optional[MeshSnapshot]) -> None:
+        """Start a job: mesh this map (its depth images for the keyframes the process has not got yet), or continue
+        with the blocks still dirty on the last one (None)."""
+        if self.busy:
+            raise RuntimeError("the mesh process is busy: poll() for its update before submitting another job")
+        if not self.running:
+            self.start()
+        if snapshot is not None:
+            self._have = set(snapshot.keyframe_ids)
+        self._send(_Job(self.epoch, snapshot))
+        self.busy = True
+
+    def have(self) -> set:
+        """Keyframe ids whose depth images the process has (leave them out of the next snapshot)."""
+        return set(self._have)
+
+    def poll(self) -> Optional[MeshUpdate]:
+        """The update of the job in progress once it is done (None before); an update of a job from before the
+        last reset comes back with its old epoch: drop it. Raises MesherCrashed if the process died."""
+        if self._process is None or not self.busy:
+            return None
+        try:
+            if not self._connection.poll(0):
+                if not self._process.is_alive():
+                    raise EOFError
+                return None
+            update = self._receive()
+        except (EOFError, OSError):
+            code = self._process.exitcode
+            self._forget_process()
+            raise MesherCrashed(f"the mesh process died (exit code {code})") from None
+        self.busy = False
+        if update.error:
+            self._have = set()  # the process starts afresh: the next snapshot carries every depth image
+        if update.epoch == self.epoch:
+            self.pending = update.pending
+        return update
+
+    def reset(self) -> None:
+        """A new map: the process forgets blocks and keyframes once its current job is done."""
+        self.epoch += 1
+        self.pending = 0
+        self._have = set()
+        if self.running:
+            self._send(_Reset(self.epoch))
+
+    def close(self, timeout: float = 5.0) -> None:
+        if self._process is None:
+            return
+        try:
+            self._connection.send(None)
+        except (OSError, ValueError):
+            pass
+        self._process.join(timeout)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join(timeout)
+        self._forget_process()
+
+    def _forget_process(self) -> None:
+        if self._connection is not None:
+            self._connection.close()
+        self._process, self._connection = None, None
+        self.busy, self.pending, self._have = False, 0, set()
+
+    def _send(self, message: Any) -> None:
+        try:
+            self._connection.send(message)
+        except (OSError, ValueError):
+            code = self._process.exitcode if self._process is not None else None
+            self._forget_process()
+            raise MesherCrashed(f"the mesh process died (exit code {code})") from None
+
+    def _receive(self) -> Any:
+        return self._connection.recv()
