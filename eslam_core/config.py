@@ -56,9 +56,12 @@ class DatasetConfig:
 
 @dataclass
 class SceneConfig:
-    # [[xmin, ymin, zmin], [xmax, ymax, zmax]] in the world frame (metres); None = estimate from the first frame.
+    # [[xmin, ymin, zmin], [xmax, ymax, zmax]] in the world frame (metres): a hard limit, the map covers exactly
+    # this box. None: the map starts around the first frame and grows by whole coarse cells wherever a keyframe's
+    # depth falls outside it (mapping/extent.py), up to `max_extent` metres per axis.
     bound: Optional[list] = None
-    bound_margin: float = 1.0  # metres added around the first frame's points when the bound is estimated
+    bound_margin: float = 1.0  # metres added around the first frame's points (and around later growth)
+    max_extent: float = 60.0  # metres per axis a growing map may reach (stops runaway growth from stray depth)
 
     def validate(self, check) -> None:
         if self.bound is not None:
@@ -68,6 +71,7 @@ class SceneConfig:
             check(all(self.bound[0][i] < self.bound[1][i] for i in range(3)), "scene.bound",
                   "each minimum must be smaller than its maximum")
         check(self.bound_margin >= 0.0, "scene.bound_margin", "must be >= 0")
+        check(self.max_extent > 0.0, "scene.max_extent", "must be positive (metres per axis)")
 
 
 @dataclass
@@ -191,9 +195,13 @@ class MappingConfig:
     joint_poses_after: int = 4
     border: int = 0
     weights: LossWeights = field(default_factory=LossWeights)
+    # The keyframe store's memory budget (MB): over it, old keyframes keep 1/16 of their pixels, then the most
+    # redundant ones are dropped (mapping/keyframes.py). 0 = no budget. Sized for a 2-core / 24 GB robot computer.
+    keyframe_budget_mb: float = 512.0
 
     def validate(self, check) -> None:
         check(self.every >= 1, "mapping.every", "must be >= 1")
+        check(self.keyframe_budget_mb >= 0, "mapping.keyframe_budget_mb", "must be >= 0 (0 = no budget)")
         check(self.iterations >= 0 and self.first_iterations >= 0, "mapping.iterations", "must be >= 0")
         check(self.rays > 0, "mapping.rays", "must be positive")
         check(self.window >= 3, "mapping.window", "must be >= 3 (current frame + last two keyframes)")

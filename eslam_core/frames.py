@@ -19,6 +19,7 @@ class PreparedFrame:
     rgb: torch.Tensor  # (H, W, 3) float32 in [0, 1]
     depth: torch.Tensor  # (H, W) float32 metres, 0 = missing
     gt_pose: Optional[np.ndarray]
+    odom_pose: Optional[np.ndarray] = None  # see Frame.odom_pose
 
 
 def working_intrinsics(intr: Intrinsics, cam: CameraConfig) -> Intrinsics:
@@ -41,7 +42,7 @@ def prepare_frame(frame: Frame, intr: Intrinsics, cam: CameraConfig) -> Prepared
     if cam.max_depth > 0:
         depth[depth > cam.max_depth] = 0
     return PreparedFrame(frame.index, frame.timestamp, torch.from_numpy(rgb.astype(np.float32) / 255.0),
-                         torch.from_numpy(depth), frame.pose)
+                         torch.from_numpy(depth), frame.pose, frame.odom_pose)
 
 
 def pixel_directions_table(intr: Intrinsics) -> torch.Tensor:

@@ -123,3 +123,20 @@ def relative_motion(T_prev: np.ndarray, T_cur: np.ndarray) -> np.ndarray:
 
 def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+
+
+def orthonormalize(T):
+    """The rigid transform nearest to a 4x4 pose whose rotation drifted from orthonormal (float rounding over many
+    composed updates, float32 optimiser output): the rotation's polar factor by SVD, the translation kept.
+    numpy or torch in, the same out."""
+    if isinstance(T, torch.Tensor):
+        return torch.from_numpy(orthonormalize(T.detach().double().numpy())).to(T.dtype)
+    T = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:  # a reflection is not a rotation: flip the weakest axis
+        U[:, -1] *= -1
+        R = U @ Vt
+    T[:3, :3] = R
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    return T

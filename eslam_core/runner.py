@@ -78,9 +78,9 @@ def run_sequence(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label
 
     if resume is not None:
         slam = load_checkpoint(resume)
-        done = {r.timestamp for r in slam.records}
+        done = {r.timestamp for r in slam.trajectory.records}
         todo = [i for i, t in enumerate(dataset.timestamps()) if t not in done]
-        log.info("resuming from %s: %d frames done, %d to go", resume, len(slam.records), len(todo))
+        log.info("resuming from %s: %d frames done, %d to go", resume, len(slam.trajectory), len(todo))
     else:
         slam = SLAM(cfg, dataset.intrinsics)
         todo = list(range(len(dataset)))
@@ -114,19 +114,20 @@ def write_outputs(cfg: Config, slam: SLAM, dataset: RGBDDataset, out_dir: Path, 
         "data": data_label or str(dataset.root),
         "dataset_kind": dataset.kind,
         "frames": list(frames),
-        "n_frames": len(slam.records),
+        "n_frames": len(slam.trajectory),
         "frames_this_run": n,
         "seconds": seconds,
         "seconds_per_frame": seconds / max(n, 1),
         "frames_per_second": n / seconds if seconds > 0 else None,
         "peak_memory_mb": peak_memory_mb() if peak_mb is None else peak_mb,
-        "parameter_count": slam.field.parameter_count() if slam.field is not None else 0,
-        "keyframes": len(slam.keyframes),
-        "keyframe_memory_mb": sum(kf.nbytes() for kf in slam.keyframes) / 2**20,
+        "parameter_count": slam.map.field.parameter_count() if slam.map.field is not None else 0,
+        "keyframes": slam.trajectory.keyframes,
+        **slam.map.memory(),
+        "keyframe_memory_mb": slam.map.keyframes.nbytes() / 2**20,
         "truncation": cfg.model.truncation,
-        "bound": None if slam.bound is None else np.round(slam.bound, 4).tolist(),
-        "points_outside_bound": slam.points_outside,
-        "points_outside_fraction": slam.points_outside / max(slam.points_seen, 1),
+        "bound": None if slam.map.extent is None else np.round(slam.map.extent, 4).tolist(),
+        "points_outside_bound": slam.map.points_outside,
+        "points_outside_fraction": slam.map.points_outside / max(slam.map.points_seen, 1),
         "ate_rmse_cm": rmse,
         "config_file": str(out_dir / "config.yaml"),
         "mesh": str(mesh_path) if mesh_path else None,

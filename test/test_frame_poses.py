@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
 from eslam_core.geometry import interpolate_pose, rotation_angle_deg
-from eslam_core.slam import FrameRecord, frame_pose, keyframe_positions
+from eslam_core.trajectory import TrackedTrajectory
 
 
 def pose(x: float, yaw_deg: float = 0.0) -> np.ndarray:
@@ -37,17 +37,13 @@ def test_drift_between_corrected_keyframes_is_removed():
     the true trajectory. Linear drift is then removed from the frames in between, not only from the keyframes."""
     truth = [pose(0.1 * k, 2.0 * k) for k in range(7)]
     tracked = [pose(0.1 * k + 0.01 * k, 2.5 * k) for k in range(7)]
-    records, keyframe_pose = [], {}
+    traj = TrackedTrajectory()
     for k in range(7):
-        ref = 0 if k < 4 else 1
-        if k in (0, 4):
-            keyframe_pose[ref] = tracked[k]
-        relative = np.linalg.inv(keyframe_pose[ref]) @ tracked[k]
-        records.append(FrameRecord(k, 0.1 * k, ref, relative, 0.0, None, tracked[k]))
-    keyframe_pose.update({0: truth[0], 1: truth[4]})  # mapping's corrections
-    keyframe_records = keyframe_positions(records)
-    assert keyframe_records == {0: 0, 1: 4}
-    poses = [frame_pose(records, keyframe_records, keyframe_pose.__getitem__, k) for k in range(7)]
+        traj.record(k, 0.1 * k, tracked[k], 0.0, None, keyframe=k in (0, 4))
+    assert traj.keyframe_records == {0: 0, 1: 4}
+    traj.refine({0: truth[0], 1: truth[4]})  # mapping's corrections
+    records, keyframe_pose = traj.records, traj.keyframe_poses
+    poses = list(traj.poses())
     for k in range(5):
         rigid = keyframe_pose[records[k].reference] @ records[k].relative  # moved with its own keyframe only
         error = np.linalg.norm(poses[k][:3, 3] - truth[k][:3, 3])

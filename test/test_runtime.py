@@ -25,9 +25,12 @@ from eslam_core.config import load_config
 from eslam_core.evaluation.trajectory import Trajectory, ate
 from eslam_core.outputs.export import load_checkpoint, map_mesh
 from eslam_core.representation.field import SceneField
-from eslam_core.slam import FrameRecord
+from eslam_core.frames import pixel_directions_table, prepare_frame
+from eslam_core.mapping.scene_map import initial_extent
+from eslam_core.slam import new_keyframe
+from eslam_core.trajectory import FrameRecord, TrackedTrajectory
 from eslam_core.runtime import RuntimeCrashed, RuntimeSetupError, make_runtime
-from eslam_core.runtime.api import RateMeter, TrajectoryMirror
+from eslam_core.runtime.api import RateMeter
 from eslam_core.runtime import workers
 from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap
 from eslam_core.runtime.workers import FaultPlan
@@ -155,8 +158,9 @@ def test_checkpoint_of_the_pipelined_run(runs, tmp_path):
     path = rt.save_checkpoint(tmp_path / "checkpoint.pt")
     slam = load_checkpoint(path)
     timestamps, poses = rt.trajectory()
-    assert len(slam.records) == N_FRAMES and len(slam.keyframes) == 3
-    assert np.allclose(slam.timestamps(), timestamps) and np.allclose(slam.poses(), poses, atol=1e-6)
+    assert len(slam.trajectory) == N_FRAMES and len(slam.map.keyframes) == 3
+    assert np.allclose(slam.trajectory.timestamps(), timestamps)
+    assert np.allclose(slam.trajectory.poses(), poses, atol=1e-6)
     assert len(map_mesh(slam, 0.08).faces) > 100
     rt.save_trajectory(tmp_path / "trajectory.txt")
     assert np.loadtxt(tmp_path / "trajectory.txt").shape == (N_FRAMES, 8)
@@ -243,8 +247,8 @@ def test_sigterm_stops_a_run_with_a_loadable_checkpoint(room_sequence, tmp_path)
     assert proc.returncode == 0, log
     assert "stopped by SIGTERM" in stdout
     slam = load_checkpoint(out / "checkpoint.pt")
-    assert 1 <= len(slam.records) < len(room_sequence)
-    assert np.loadtxt(out / "trajectory.txt", ndmin=2).shape == (len(slam.records), 8)
+    assert 1 <= len(slam.trajectory) < len(room_sequence)
+    assert np.loadtxt(out / "trajectory.txt", ndmin=2).shape == (len(slam.trajectory), 8)
     assert not (out / "mesh.ply").exists()  # an interrupted run skips the mesh
     pids = [int(p) for p in re.search(r"tracker \(pid (\d+)\) and mapper \(pid (\d+)\)", log).groups()]
     assert wait_until(lambda: not any(alive(p) for p in pids), 5)
@@ -467,34 +471,37 @@ def test_trajectory_mirror_applies_refinements_in_any_order():
         pose[0, 3] = x
         return pose
 
-    mirror = TrajectoryMirror()
-    mirror.add(FrameRecord(0, 0.0, 0, np.eye(4), 0.0, None, shifted(1.0)), shifted(1.0), keyframe=True)
-    mirror.add(FrameRecord(1, 0.1, 0, shifted(0.5), 0.1, None, shifted(1.5)), shifted(1.5), keyframe=False)
+    mirror = TrackedTrajectory()
+    mirror.append(FrameRecord(0, 0.0, 0, np.eye(4), 0.0, None, shifted(1.0)), keyframe=True)
+    mirror.append(FrameRecord(1, 0.1, 0, shifted(0.5), 0.1, None, shifted(1.5)), keyframe=False)
     mirror.refine({1: shifted(3.0)})  # keyframe 1's refinement arrives before its own record
-    mirror.add(FrameRecord(2, 0.2, 1, np.eye(4), 0.1, None, shifted(2.0)), shifted(2.0), keyframe=True)
+    mirror.append(FrameRecord(2, 0.2, 1, np.eye(4), 0.1, None, shifted(2.0)), keyframe=True)
     mirror.refine({0: shifted(2.0)})  # both keyframes moved by +1: so does frame 1 between them
-    timestamps, poses = mirror.trajectory()
-    assert np.allclose(timestamps, [0.0, 0.1, 0.2]) and mirror.keyframes == 2
-    assert np.allclose(poses[:, 0, 3], [2.0, 2.5, 3.0])
+    assert np.allclose(mirror.timestamps(), [0.0, 0.1, 0.2]) and mirror.keyframes == 2
+    assert np.allclose(mirror.poses()[:, 0, 3], [2.0, 2.5, 3.0])
     mirror.refine({0: shifted(1.0)})  # keyframe 0 back where it was tracked: frame 1, halfway, moves by half of +1
-    assert np.allclose(mirror.trajectory()[1][:, 0, 3], [1.0, 2.0, 3.0])
+    assert np.allclose(mirror.poses()[:, 0, 3], [1.0, 2.0, 3.0])
 
 
 def test_pipelined_tracker_observes_only_what_the_map_is_fitted_to(room_sequence):
     """Space of a keyframe the mapper has not mapped yet is not observed: its SDF is still the old map's. Nor is
     the newest mapped keyframe's (one step leaves new space rough), except the first one's after its warm-up."""
-    state = workers.PipelinedTracking(fast_cfg(tracking={"method": "sdf"}), room_sequence.intrinsics)
-    for i in range(9):  # keyframes 0, 4, 8; no map is ever published here, so tracking keeps the prediction
-        state.step(room_sequence[i])
-    assert state.handed_over == [0, 1, 2] and len(state.unobserved) == 3
-    assert not state.observed.seen.any()
-    state.observe_mapped(1)
-    first = int(state.observed.seen.sum())
-    assert first > 0 and len(state.unobserved) == 2
-    state.observe_mapped(2)  # keyframe 1 mapped once: not yet
-    assert int(state.observed.seen.sum()) == first and len(state.unobserved) == 2
-    state.observe_mapped(3)
-    assert int(state.observed.seen.sum()) > first and len(state.unobserved) == 1
+    cfg = fast_cfg(tracking={"method": "sdf"})
+    intr = room_sequence.intrinsics
+    replica = workers.MapReplica(cfg, intr, pixel_directions_table(intr))
+    frames = [prepare_frame(room_sequence[i], intr, cfg.camera) for i in (0, 4, 8)]
+    replica.start(initial_extent(cfg, frames[0], intr, frames[0].gt_pose))
+    for number, pf in enumerate(frames):  # keyframes 0, 1, 2 handed over, none mapped yet
+        replica.add_keyframe(new_keyframe(pf, torch.from_numpy(pf.gt_pose).float(), number))
+    observed = replica.observed
+    assert len(observed.pending) == 3 and not observed.space.seen.any()
+    observed.mapped(1)
+    first = int(observed.space.seen.sum())
+    assert first > 0 and len(observed.pending) == 2
+    observed.mapped(2)  # keyframe 1 mapped once: not yet
+    assert int(observed.space.seen.sum()) == first and len(observed.pending) == 2
+    observed.mapped(3)
+    assert int(observed.space.seen.sum()) > first and len(observed.pending) == 1
 
 
 def test_mapper_catches_up_only_when_a_newer_keyframe_waits(monkeypatch):

@@ -35,3 +35,25 @@ def outside_mask(points: torch.Tensor, bound: np.ndarray) -> torch.Tensor:
     """(N,) bool: the point lies outside the axis-aligned bound (2, 3)."""
     lo, hi = (torch.as_tensor(b, dtype=points.dtype) for b in bound)
     return ((points < lo) | (points > hi)).any(-1)
+
+
+def grown_extent(extent: np.ndarray, points: torch.Tensor, step: float, margin: float,
+                 max_extent: float) -> tuple[np.ndarray, int]:
+    """The extent grown by whole `step` cells on each side that `points` (N, 3) leave, with `margin` metres to
+    spare, each axis capped at `max_extent` metres (growth towards the side of the points stops there). Returns the
+    new extent and how many points it still leaves out."""
+    if len(points) == 0:
+        return extent, 0
+    lo, hi = points.amin(0).double().numpy(), points.amax(0).double().numpy()
+    new = extent.copy()
+    below, above = lo < extent[0], hi > extent[1]
+    new[0, below] -= np.ceil((extent[0, below] - lo[below] + margin) / step - 1e-9) * step
+    new[1, above] += np.ceil((hi[above] - extent[1, above] + margin) / step - 1e-9) * step
+    for axis in range(3):  # over the cap: keep the side that grew least (the stray side is cut first)
+        while new[1, axis] - new[0, axis] > max_extent + 1e-9:
+            grow_lo, grow_hi = extent[0, axis] - new[0, axis], new[1, axis] - extent[1, axis]
+            if grow_lo <= 0 and grow_hi <= 0:
+                break
+            side = 0 if grow_lo >= grow_hi else 1
+            new[side, axis] += step if side == 0 else -step
+    return new, int(outside_mask(points, new).sum())

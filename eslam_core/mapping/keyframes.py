@@ -1,11 +1,18 @@
-"""The keyframe list: compact storage and the overlap-based choice of the mapping window (paper Sec. 3.4).
+"""The keyframe store: compact storage under a memory budget, and the overlap-based choice of the mapping window
+(paper Sec. 3.4).
 
-Keyframes are kept as uint8 colour and 16-bit depth (0.2 mm steps, up to 13.1 m): 1.5 MB for a 640x480 frame,
-instead of ~22 MB as float64 in the official implementation.
+Keyframes are kept as uint8 colour and 16-bit depth (0.2 mm steps, up to 13.1 m): 1.76 MB for a 640x480 frame,
+instead of ~22 MB as float64 in the official implementation. A camera that runs for hours still makes a keyframe
+every few frames, so the store has a budget (`mapping.keyframe_budget_mb`). Over it, the oldest keyframes (not the
+newest `window`) are *reduced*: their images are kept at every `REDUCED_STRIDE`-th pixel along both axes (1/16 of
+the bytes; mapping draws its few hundred rays per keyframe from the ~19k pixels left). When every old keyframe is
+reduced and the store is still over budget, the reduced keyframe that overlaps the newest keyframe's view most
+(the overlap the window selection measures) is dropped: the newest keyframe sees the same surface, and the feature
+planes keep what was learnt from the dropped one.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -14,6 +21,7 @@ from eslam_core.camera import Intrinsics
 
 DEPTH_STEP = 1.0 / 5000.0  # metres per unit of the stored depth
 DEPTH_MAX = 65535 * DEPTH_STEP
+REDUCED_STRIDE = 4
 
 
 @dataclass
@@ -24,14 +32,38 @@ class Keyframe:
     depth: torch.Tensor  # (H, W) int32-decoded uint16 storage, see DEPTH_STEP
     usable: torch.Tensor  # (H, W) bool: pixel may be sampled (e.g. not observing geometry outside the bound)
     pose: torch.Tensor  # (4, 4) float32 camera-to-world, refined by mapping
+    number: int = 0  # 0, 1, ... in order of creation: the keyframe's name in the trajectory and in messages
+    stride: int = 1  # the images hold every stride-th pixel of the frame along both axes (reduced keyframe)
 
     @staticmethod
     def from_tensors(frame_index: int, timestamp: float, rgb: torch.Tensor, depth: torch.Tensor,
-                     usable: torch.Tensor, pose: torch.Tensor) -> "Keyframe":
+                     usable: torch.Tensor, pose: torch.Tensor, number: int = 0) -> "Keyframe":
         rgb8 = (rgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8)
         d = torch.where(depth < DEPTH_MAX, depth, torch.zeros_like(depth))
         d16 = (d / DEPTH_STEP + 0.5).to(torch.int32).to(torch.int16)  # stores uint16 bits in int16
-        return Keyframe(frame_index, timestamp, rgb8, d16, usable.clone(), pose.detach().clone())
+        return Keyframe(frame_index, timestamp, rgb8, d16, usable.clone(), pose.detach().clone(), number)
+
+    def reduced(self) -> "Keyframe":
+        s, o = REDUCED_STRIDE, REDUCED_STRIDE // 2
+        return replace(self, rgb=self.rgb[o::s, o::s].clone(), depth=self.depth[o::s, o::s].clone(),
+                       usable=self.usable[o::s, o::s].clone(), stride=s)
+
+    def frame_pixels(self, flat_idx: torch.Tensor, width: int) -> torch.Tensor:
+        """Flat pixel indices in the full frame (of `width` columns) of flat indices into the stored images."""
+        if self.stride == 1:
+            return flat_idx
+        w = self.usable.shape[1]
+        o = self.stride // 2
+        return (flat_idx // w * self.stride + o) * width + flat_idx % w * self.stride + o
+
+    def frame_depth_image(self, height: int, width: int) -> torch.Tensor:
+        """The depth image at the frame's resolution (a reduced keyframe's by nearest neighbour)."""
+        d = self.depth_image()
+        if self.stride == 1:
+            return d
+        full = d.repeat_interleave(self.stride, 0).repeat_interleave(self.stride, 1)
+        return torch.nn.functional.pad(full, (0, max(0, width - full.shape[1]), 0, max(0, height - full.shape[0])))[
+            :height, :width]
 
     def colors(self, flat_idx: torch.Tensor) -> torch.Tensor:
         return self.rgb.reshape(-1, 3)[flat_idx].float() / 255.0
@@ -58,7 +90,67 @@ def overlap_fractions(points_world: torch.Tensor, poses: torch.Tensor, intr: Int
     return inside.float().mean(-1)
 
 
-def select_window(keyframes: list[Keyframe], current: int, points_world: torch.Tensor, intr: Intrinsics,
+class KeyframeStore:
+    """The keyframes mapping can use, oldest first, under a memory budget (see the module docstring)."""
+
+    def __init__(self, budget_bytes: int, keep_full: int):
+        self.budget_bytes = budget_bytes
+        self.keep_full = keep_full  # the newest keyframes are never reduced
+        self.items: list[Keyframe] = []
+        self.made = 0  # keyframes ever added (the next keyframe's number)
+        self.reduced = 0
+        self.dropped = 0
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, position: int) -> Keyframe:
+        return self.items[position]
+
+    def __iter__(self):
+        return iter(self.items)
+
+    def nbytes(self) -> int:
+        return sum(kf.nbytes() for kf in self.items)
+
+    def append(self, kf: Keyframe, intr: Intrinsics, newest_points: torch.Tensor | None = None) -> None:
+        """Add the newest keyframe, then reduce or drop older ones until the store fits its budget.
+        `newest_points`: world points of its surface, to find the keyframe it makes redundant."""
+        self.items.append(kf)
+        self.made = max(self.made, kf.number + 1)
+        if self.budget_bytes <= 0:
+            return
+        total = self.nbytes()
+        for i in range(max(0, len(self.items) - self.keep_full)):
+            if total <= self.budget_bytes:
+                return
+            if self.items[i].stride == 1:
+                before = self.items[i].nbytes()
+                self.items[i] = self.items[i].reduced()
+                total += self.items[i].nbytes() - before
+                self.reduced += 1
+        while total > self.budget_bytes and len(self.items) > self.keep_full:
+            old = range(len(self.items) - self.keep_full)
+            if newest_points is not None and len(newest_points):
+                overlap = overlap_fractions(newest_points, torch.stack([self.items[i].pose for i in old]), intr)
+                victim = int(overlap.argmax())
+            else:
+                victim = 0
+            total -= self.items.pop(victim).nbytes()
+            self.dropped += 1
+
+    def replace_all(self, keyframes: list[Keyframe]) -> None:
+        self.items = list(keyframes)
+        self.made = max([self.made] + [kf.number + 1 for kf in keyframes])
+
+    def position(self, number: int) -> int | None:
+        for i in range(len(self.items) - 1, -1, -1):
+            if self.items[i].number == number:
+                return i
+        return None
+
+
+def select_window(keyframes, current: int, points_world: torch.Tensor, intr: Intrinsics,
                   window: int, generator: np.random.Generator) -> list[int]:
     """Keyframe positions for a mapping step: W-3 random overlapping ones + the previous two + the current one."""
     previous = [i for i in (current - 2, current - 1) if i >= 0]

@@ -31,24 +31,26 @@ class Mapper:
     def __init__(self, cfg: Config, dirs_cam: torch.Tensor, height: int, width: int):
         self.cfg = cfg
         self.dirs_cam = dirs_cam
+        self.width = width
         self.border = border_mask(height, width, cfg.mapping.border).reshape(-1)
 
     def _pixels(self, kf: Keyframe, n: int) -> torch.Tensor:
-        """n pixels drawn uniformly (with replacement) from the keyframe's usable ones. Usually most pixels are
-        usable, so rejection sampling finds them without a pass over the whole image."""
+        """n pixels (indices into the keyframe's stored images) drawn uniformly (with replacement) from its usable
+        ones. Usually most pixels are usable, so rejection sampling finds them without a pass over the image."""
         usable = kf.usable.reshape(-1)
         for _ in range(3):
             draw = torch.randint(len(usable), (2 * n,))
-            draw = draw[self.border[draw] & usable[draw]]
+            draw = draw[self.border[kf.frame_pixels(draw, self.width)] & usable[draw]]
             if len(draw) >= n:
                 return draw[:n]
-        candidates = torch.nonzero(self.border & usable).squeeze(1)
+        every = torch.arange(len(usable))
+        candidates = torch.nonzero(self.border[kf.frame_pixels(every, self.width)] & usable).squeeze(1)
         if len(candidates) == 0:
             return candidates
         return candidates[torch.randint(len(candidates), (n,))]
 
     @denormals_flushed()  # see cpu.py
-    def map(self, field: SceneField, keyframes: list[Keyframe], window: list[int], first: bool = False,
+    def map(self, field: SceneField, keyframes, window: list[int], first: bool = False,
             optimise_poses: bool = False, stop_early: Optional[Callable[[int], bool]] = None) -> MappingResult:
         """`stop_early(iterations done)`, asked after every iteration, may end the step before its iteration count
         (the pipelined mapper does when it falls behind the tracker)."""
@@ -76,7 +78,7 @@ class Mapper:
                 if len(pix) == 0:
                     continue
                 c2w = params_to_pose(*pose_params[i]) if i in pose_params else kf.pose
-                dirs.append(self.dirs_cam[pix] @ c2w[:3, :3].T)
+                dirs.append(self.dirs_cam[kf.frame_pixels(pix, self.width)] @ c2w[:3, :3].T)
                 origins.append(c2w[:3, 3].expand(len(pix), 3))
                 d_gt.append(kf.depths(pix))
                 rgb_gt.append(kf.colors(pix))

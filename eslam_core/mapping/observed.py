@@ -8,6 +8,8 @@ one voxel), so keyframe pose refinements of a few centimetres do not matter.
 """
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 import torch
 
@@ -19,6 +21,15 @@ class ObservedSpace:
         self.shape = tuple(int(n) for n in np.ceil((bound[1] - bound[0]) / voxel - 1e-6))
         self.seen = torch.zeros(self.shape, dtype=torch.bool)
         self._near: torch.Tensor | None = None  # `seen` grown by one voxel, computed when first needed
+
+    def grown(self, bound: np.ndarray) -> "ObservedSpace":
+        """The same observed voxels in a grid over a larger bound (aligned to this grid's voxels)."""
+        origin = self.origin.double().numpy()
+        shift = np.ceil((origin - bound[0]) / self.voxel - 1e-6).astype(int).clip(min=0)
+        new = ObservedSpace(np.stack([origin - shift * self.voxel, bound[1]]), self.voxel)
+        i, j, k = shift
+        new.seen[i: i + self.shape[0], j: j + self.shape[1], k: k + self.shape[2]] = self.seen
+        return new
 
     def _voxels(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         ijk = torch.floor((points - self.origin) / self.voxel).long()
@@ -54,3 +65,30 @@ def grow_by_one_voxel(grid: torch.Tensor) -> torch.Tensor:
         out.narrow(axis, 0, n - 1).logical_or_(grown.narrow(axis, 1, n - 1))
         grown = out
     return grown
+
+
+class ObservedSurfaces:
+    """Observed space fed with the keyframes' surface points as mapping fits them. The newest keyframe's single
+    mapping step shares the rays with the whole window and leaves space seen for the first time rough: a keyframe
+    joins after the step that follows its own; the first one after its warm-up."""
+
+    def __init__(self, bound: np.ndarray, voxel: float):
+        self.space = ObservedSpace(bound, voxel)
+        self.pending: deque = deque()  # surface points of keyframes not joined yet, oldest first
+        self.joined = 0
+
+    def add_keyframe(self, points: torch.Tensor) -> None:
+        self.pending.append(points)
+
+    def mapped(self, keyframes: int) -> None:
+        """The map is now fitted to the first `keyframes` keyframes."""
+        trusted = min(keyframes, max(1, keyframes - 1))
+        while self.joined < trusted and self.pending:
+            self.space.add(self.pending.popleft())
+            self.joined += 1
+
+    def grow(self, bound: np.ndarray) -> None:
+        self.space = self.space.grown(bound)
+
+    def contains(self, points: torch.Tensor) -> torch.Tensor:
+        return self.space.contains(points)

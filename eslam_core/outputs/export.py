@@ -9,7 +9,7 @@ import trimesh
 
 from eslam_core.outputs.culling import visible_mask
 from eslam_core.evaluation.trajectory import Trajectory, write_tum
-from eslam_core.geometry import depth_points_world
+from eslam_core.mapping.scene_map import surface_points
 from eslam_core.outputs.mesh import MeshSettings, extract_mesh
 from eslam_core.outputs.map_file import CheckpointError, read_checkpoint
 from eslam_core.slam import CHECKPOINT_VERSION, SLAM
@@ -34,11 +34,11 @@ def load_checkpoint(path: Path) -> SLAM:
 
 
 def estimated_trajectory(slam: SLAM) -> Trajectory:
-    return Trajectory(slam.timestamps(), slam.poses())
+    return Trajectory(slam.trajectory.timestamps(), slam.trajectory.poses())
 
 
 def ground_truth_trajectory(slam: SLAM) -> Trajectory | None:
-    known = [(r.timestamp, r.gt_pose) for r in slam.records if r.gt_pose is not None]
+    known = [(r.timestamp, r.gt_pose) for r in slam.trajectory.records if r.gt_pose is not None]
     if not known:
         return None
     return Trajectory(np.array([t for t, _ in known]), np.stack([p for _, p in known]))
@@ -54,30 +54,30 @@ def write_trajectories(slam: SLAM, out_dir: Path) -> None:
 def observed_bound(slam: SLAM, margin: float) -> np.ndarray:
     """Box around what the keyframes observed (plus a margin), inside the map's bound: what is worth meshing."""
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for kf in slam.keyframes:
-        d = kf.depth_image().reshape(-1)
-        ok = (d > 0) & kf.usable.reshape(-1)
-        pts = depth_points_world(slam.dirs_cam[ok], d[ok], kf.pose)
+    for kf in slam.map.keyframes:
+        pts = surface_points(slam.dirs_cam, kf, slam.intr.width, stride=1)
         if len(pts):
             lo = np.minimum(lo, pts.amin(0).numpy())
             hi = np.maximum(hi, pts.amax(0).numpy())
+    extent = slam.map.extent
     if not np.all(np.isfinite(lo)):
-        return slam.bound
-    return np.stack([np.maximum(lo - margin, slam.bound[0]), np.minimum(hi + margin, slam.bound[1])])
+        return extent
+    return np.stack([np.maximum(lo - margin, extent[0]), np.minimum(hi + margin, extent[1])])
 
 
 def map_mesh(slam: SLAM, resolution: float) -> trimesh.Trimesh:
     """Marching cubes on the decoded SDF over the observed region, culled to what the keyframes saw."""
-    if slam.field is None:
+    if slam.map.field is None:
         raise CheckpointError("the map is empty: no frame has been processed")
     T = slam.cfg.model.truncation
-    poses = torch.stack([kf.pose for kf in slam.keyframes]).double().numpy()
-    depths = torch.stack([kf.depth_image() for kf in slam.keyframes]).numpy()
+    keyframes, (h, w) = slam.map.keyframes, (slam.intr.height, slam.intr.width)
+    poses = torch.stack([kf.pose for kf in keyframes]).double().numpy()
+    depths = torch.stack([kf.frame_depth_image(h, w) for kf in keyframes]).numpy()
 
     def visible(points: np.ndarray) -> np.ndarray:
         return visible_mask(points, poses, slam.intr, depths, T)
 
-    field = slam.field.eval()
+    field = slam.map.field.eval()
     with torch.no_grad():
         return extract_mesh(field.sdf, field.color, observed_bound(slam, 2 * T),
                             MeshSettings(resolution=resolution, truncation=T), visible_fn=visible)

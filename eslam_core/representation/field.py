@@ -61,6 +61,20 @@ class SceneField(nn.Module):
     def forward(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.sdf(points), self.color(points)
 
+    def grown(self, bound: np.ndarray) -> "SceneField":
+        """The field over a larger bound (see FeaturePlanes.grown); decoders and sharpness are shared as they are."""
+        new = SceneField.__new__(SceneField)
+        nn.Module.__init__(new)
+        new.bound = np.asarray(bound, dtype=np.float64)
+        new.geometry_planes = self.geometry_planes.grown(new.bound)
+        new.appearance_planes = self.appearance_planes.grown(new.bound)
+        new.geometry_decoder, new.appearance_decoder, new.beta = \
+            self.geometry_decoder, self.appearance_decoder, self.beta
+        return new
+
+    def nbytes(self) -> int:
+        return sum(p.numel() * p.element_size() for p in self.parameters())
+
     def plane_parameters(self) -> list[nn.Parameter]:
         return [self.geometry_planes.table, self.appearance_planes.table]
 

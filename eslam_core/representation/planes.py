@@ -134,6 +134,7 @@ class FeaturePlanes(nn.Module):
         self.layout = PlaneLayout.for_bound(bound, resolutions)
         self.resolutions = tuple(resolutions)
         self.channels = channels
+        self.init_std = init_std
         self.table = nn.Parameter(torch.randn(self.layout.rows, channels) * init_std)
         self.register_buffer("bound_min", torch.tensor(bound[0], dtype=torch.float32))
         self.register_buffer("bound_extent", torch.tensor(bound[1] - bound[0], dtype=torch.float32))
@@ -162,6 +163,29 @@ class FeaturePlanes(nn.Module):
         starts = [offsets[0] for offsets in self.layout.offsets] + [self.layout.rows]
         blocks = weight.split(self.channels, dim=1)
         return torch.cat([self.table[a:b] @ w.T for a, b, w in zip(starts[:-1], starts[1:], blocks)])
+
+    def grown(self, bound: np.ndarray) -> "FeaturePlanes":
+        """The planes over a larger `bound` whose grid points include this one's (grown by whole cells of every
+        scale): existing features stay where they are in the world, new cells are initialised as at creation."""
+        old_min = self.bound_min.double().numpy()
+        new = FeaturePlanes(bound, self.resolutions, self.channels, self.init_std)
+        with torch.no_grad():
+            for s, res in enumerate(self.resolutions):
+                shift = np.round((old_min - np.asarray(bound[0])) / res).astype(int)
+                if (shift < 0).any():
+                    raise ValueError("FeaturePlanes.grown: the new bound must contain the old one")
+                for which, (a, b) in enumerate(PLANE_AXES):
+                    new.plane_rows(s, which)[shift[b]: shift[b] + self.layout.sizes[s][b],
+                                             shift[a]: shift[a] + self.layout.sizes[s][a]] = self.plane_rows(s, which)
+        new.use_native = self.use_native
+        return new
+
+    def plane_rows(self, scale: int, which: int) -> torch.Tensor:
+        """One plane as a (rows along its second axis, columns along its first, channels) view of the table."""
+        a, b = PLANE_AXES[which]
+        n = self.layout.sizes[scale]
+        off = self.layout.offsets[scale][which]
+        return self.table.data[off: off + n[a] * n[b]].view(n[b], n[a], self.channels)
 
     def plane(self, scale: int, which: int) -> torch.Tensor:
         """One plane as a (channels, rows, cols) image (for inspection and tests)."""

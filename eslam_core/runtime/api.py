@@ -24,7 +24,6 @@ import numpy as np
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
-from eslam_core.slam import FrameRecord, frame_pose
 
 POLICIES = ("offline", "live")
 WORKER_CHOICES = (1, 2)
@@ -160,38 +159,6 @@ class LatencyMeter:
     @property
     def mean_ms(self) -> float:
         return 1000.0 * float(np.mean(self.recent)) if self.recent else 0.0
-
-
-class TrajectoryMirror:
-    """A copy of the trajectory that the caller can read at any time without waiting for the SLAM step in progress:
-    each frame relative to its keyframe (as `SLAM` stores it, see `frame_pose`), keyframe poses updated as mapping
-    refines them (a refinement may arrive before the keyframe's own record)."""
-
-    def __init__(self):
-        self.records: list[FrameRecord] = []
-        self.keyframe_records: dict[int, int] = {}
-        self.keyframe_poses: dict[int, np.ndarray] = {}
-
-    @property
-    def keyframes(self) -> int:
-        return len(self.keyframe_records)
-
-    def add(self, record: FrameRecord, pose: np.ndarray, keyframe: bool) -> None:
-        if keyframe:
-            self.keyframe_poses.setdefault(record.reference, np.asarray(pose, dtype=np.float64))
-            self.keyframe_records[record.reference] = len(self.records)
-        self.records.append(record)
-
-    def refine(self, poses: dict) -> None:
-        for i, pose in poses.items():
-            self.keyframe_poses[i] = np.asarray(pose, dtype=np.float64)
-
-    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        if not self.records:
-            return np.zeros(0), np.zeros((0, 4, 4))
-        poses = [frame_pose(self.records, self.keyframe_records, self.keyframe_poses.__getitem__, k)
-                 for k in range(len(self.records))]
-        return np.array([r.timestamp for r in self.records]), np.stack(poses)
 
 
 # ---------------------------------------------------------------------------------------------------------- factory

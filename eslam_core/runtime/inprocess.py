@@ -27,8 +27,9 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
 from eslam_core.slam import SLAM
+from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
-from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, TrajectoryMirror, \
+from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, \
     check_frame, check_policy
 
 log = logging.getLogger("eslam")
@@ -66,7 +67,7 @@ class InProcessRuntime(SavingMixin):
 
     def _new_map(self) -> None:
         self.slam = SLAM(self.cfg, self.intrinsics)
-        self._mirror = TrajectoryMirror()
+        self._mirror = TrackedTrajectory()  # what the caller reads while a step runs
         self._updates: list[PoseUpdate] = []
         self._tracking_rate, self._mapping_rate, self._latency = RateMeter(), RateMeter(), LatencyMeter()
 
@@ -119,9 +120,9 @@ class InProcessRuntime(SavingMixin):
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         if self._closed:
-            return self.slam.timestamps(), self.slam.poses()
+            return self.slam.trajectory.timestamps(), self.slam.trajectory.poses()
         with self._lock:
-            return self._mirror.trajectory()
+            return self._mirror.timestamps(), self._mirror.poses()
 
     def health(self) -> Health:
         with self._cond:
@@ -215,9 +216,7 @@ class InProcessRuntime(SavingMixin):
                             raise _StepInterrupted  # submitted before a reset
                         self._step_epoch = epoch
                         res = self.slam.step(frame)
-                        record = self.slam.records[-1]
-                        refined = {i: kf.pose.double().numpy() for i, kf in enumerate(self.slam.keyframes)} \
-                            if res.keyframe else {}
+                        record = self.slam.trajectory.records[-1]
                 except _StepInterrupted:
                     with self._cond:
                         self._counts["dropped"] += 1  # taken, never tracked
@@ -225,8 +224,8 @@ class InProcessRuntime(SavingMixin):
                 done = time.monotonic()
                 with self._lock:
                     if epoch == self._epoch:  # else a reset came in after the step: it belongs to the old map
-                        self._mirror.add(record, res.pose, res.keyframe)
-                        self._mirror.refine(refined)
+                        self._mirror.append(record, res.keyframe)
+                        self._mirror.refine(res.refined)
                         self._updates.append(PoseUpdate(res.index, frame.timestamp, res.pose, res.tracking_loss,
                                                         res.keyframe, done - arrival))
                         self._tracking_rate.tick(done)

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import gc
+import io
 import itertools
 import logging
 import multiprocessing.connection
@@ -47,12 +48,11 @@ import torch.multiprocessing as tmp
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
-from eslam_core.representation.field import SceneField
 from eslam_core.frames import prepare_frame, working_intrinsics
-from eslam_core.mapping.keyframes import Keyframe
-from eslam_core.slam import SLAM, FrameRecord, keyframe_positions
+from eslam_core.slam import SLAM
+from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
-from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, TrajectoryMirror, \
+from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, \
     check_frame, check_policy
 from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta
 from eslam_core.runtime.workers import EXIT_ORPHANED, STOP_SIGNALS, Channels, MapperFinished, MapperSnapshot, MappingReport, SnapshotRequest, \
@@ -113,26 +113,6 @@ def semaphore_names(*objects) -> list[str]:
     return names
 
 
-def assemble_slam(cfg: Config, intrinsics: Intrinsics, mapper_state: dict, records: list[FrameRecord],
-                  points_outside: int, points_seen: int) -> SLAM:
-    """A `SLAM` with the mapper's map and keyframes and the parent's trajectory (what `state_dict` would hold)."""
-    slam = SLAM(cfg, intrinsics)
-    if mapper_state.get("field") is None:
-        return slam
-    slam.bound = mapper_state["bound"].numpy().copy()
-    slam.field = SceneField(slam.bound, cfg.model)
-    slam.field.load_state_dict(mapper_state["field"])
-    kf = mapper_state["keyframes"]
-    slam.keyframes = [Keyframe(int(kf["frame_index"][i]), float(kf["timestamp"][i]), kf["rgb"][i].clone(),
-                               kf["depth"][i].clone(), kf["usable"][i].clone(), kf["pose"][i].clone())
-                      for i in range(len(kf["frame_index"]))]
-    slam.records = [dataclasses.replace(r) for r in records]
-    slam.keyframe_records = keyframe_positions(slam.records)
-    slam.rng.bit_generator.state = mapper_state["rng"]
-    slam.points_outside, slam.points_seen = points_outside, points_seen
-    return slam
-
-
 class MultiProcessRuntime(SavingMixin):
     def __init__(self, cfg: Config, intrinsics: Intrinsics, policy: str = "offline", threads: Optional[int] = None,
                  capacity: int = DEFAULT_CAPACITY, publish_every: int = 5, lend_threads: bool = True,
@@ -176,7 +156,7 @@ class MultiProcessRuntime(SavingMixin):
 
     def _reset_parent_state(self, epoch: int) -> None:
         self._epoch = epoch
-        self._mirror = TrajectoryMirror()
+        self._mirror = TrackedTrajectory()
         self._updates: list[PoseUpdate] = []
         self._tracking_rate = RateMeter()
         self._mapping_rate = RateMeter()
@@ -351,10 +331,10 @@ class MultiProcessRuntime(SavingMixin):
         if msg.epoch != self._epoch:
             return  # from before a reset
         if isinstance(msg, TrackedFrame):
-            # The tracker's newest frame has no next keyframe to blend with: msg.pose is the pose as tracked.
-            self._mirror.add(FrameRecord(msg.index, msg.timestamp, msg.reference, msg.relative, msg.tracking_loss,
-                                         msg.gt_pose, msg.pose), msg.pose, msg.keyframe)
-            self._updates.append(PoseUpdate(msg.index, msg.timestamp, msg.pose, msg.tracking_loss, msg.keyframe,
+            r = msg.record
+            self._mirror.append(r, msg.keyframe)
+            # The tracker's newest frame has no next keyframe to blend with: its pose is the pose as tracked.
+            self._updates.append(PoseUpdate(r.index, r.timestamp, r.tracked, r.tracking_loss, msg.keyframe,
                                             msg.latency_s))
             self._tracking_rate.tick(msg.done)
             self._latency.add(msg.latency_s)
@@ -413,12 +393,12 @@ class MultiProcessRuntime(SavingMixin):
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         if self._final is not None:
-            return self._final.timestamps(), self._final.poses()
+            return self._final.trajectory.timestamps(), self._final.trajectory.poses()
         if self._started and not self._closed:
             self._raise_if_crashed()
             self._pump()
         with self._lock:
-            return self._mirror.trajectory()
+            return self._mirror.timestamps(), self._mirror.poses()
 
     def health(self) -> Health:
         if self._last_health is not None:
@@ -461,7 +441,7 @@ class MultiProcessRuntime(SavingMixin):
         self._check_running()
         with self._lock:
             self._pump()
-            records, keyframes, epoch = list(self._mirror.records), self._mirror.keyframes, self._epoch
+            trajectory, keyframes, epoch = self._mirror.state_dict(), self._mirror.keyframes, self._epoch
             request_id = next(self._request_ids)
         self._queues["commands"].put(SnapshotRequest(request_id, epoch, keyframes))
         if not self._wait(lambda: request_id in self._snapshots, SNAPSHOT_TIMEOUT_S, "a snapshot of the map"):
@@ -469,11 +449,11 @@ class MultiProcessRuntime(SavingMixin):
                                            f"{SNAPSHOT_TIMEOUT_S:.0f} s")
         with self._lock:
             state = self._snapshots.pop(request_id).state
-        if state.get("field") is None:
-            records = []  # reset meanwhile, or nothing tracked yet
-        b = self._board
-        return assemble_slam(self.cfg, self.intrinsics, state, records, int(b.get(Counter.POINTS_OUTSIDE)),
-                             int(b.get(Counter.POINTS_SEEN)))
+        slam = SLAM(self.cfg, self.intrinsics)
+        if state is not None:  # else reset meanwhile, or nothing tracked yet
+            slam.map.load_state_dict(torch.load(io.BytesIO(state), weights_only=True))
+            slam.trajectory = TrackedTrajectory.from_state_dict(trajectory)
+        return slam
 
     def reset(self) -> None:
         self._check_running()

@@ -144,12 +144,13 @@ class FrameRing:
 class MapMeta:
     """The part of the shared map that exists before the map does (created by the parent, inherited at spawn)."""
 
-    # PINS, PINS + 1: readers holding buffer 0 / 1; MAPPED: how many keyframes the newest map is fitted to.
-    VERSION, FRONT, PINS, MAPPED = 0, 1, 2, 4
+    # PINS, PINS + 1: readers holding buffer 0 / 1; MAPPED: how many keyframes the newest map is fitted to;
+    # GENERATION: how many buffer pairs the mapper has made (a grown map gets new buffers of its new size).
+    VERSION, FRONT, PINS, MAPPED, GENERATION = 0, 1, 2, 4, 5
 
     def __init__(self, ctx):
         self.lock = ctx.Lock()
-        self.state = torch.tensor([0, -1, 0, 0, 0], dtype=torch.int64).share_memory_()
+        self.state = torch.tensor([0, -1, 0, 0, 0, 0], dtype=torch.int64).share_memory_()
 
     @property
     def version(self) -> int:
@@ -167,9 +168,15 @@ def parameter_layout(field: nn.Module) -> list[tuple[nn.Parameter, int, int]]:
 
 
 class SharedMap:
-    def __init__(self, meta: MapMeta, buffers: torch.Tensor):
+    """The mapper's field in a pair of shared buffers: the mapper writes the back one and flips; readers copy the
+    front one out under a pin. A map that grows gets a new pair (a new generation): a reader still attached to the
+    old pair reads nothing more from it, never a half-written or differently sized map, until it attaches to the
+    new pair (MapAttach)."""
+
+    def __init__(self, meta: MapMeta, buffers: torch.Tensor, generation: int):
         self.meta = meta
         self.buffers = buffers  # (2, P) float32 in shared memory
+        self.generation = generation
         self.publish_seconds = 0.0
         self.read_seconds = 0.0
         self.mapped = 0  # of the map last read: how many keyframes (the first ones) it has been fitted to
@@ -178,9 +185,12 @@ class SharedMap:
     def create(meta: MapMeta, field: nn.Module) -> "SharedMap":
         """Buffers sized for `field` (by its owner, the mapper); nothing is readable until the first publish."""
         size = sum(p.numel() for p in field.parameters())
-        with meta.lock:  # (pins are left alone: a reader of an older map may still hold one)
+        buffers = torch.zeros(2, size, dtype=torch.float32).share_memory_()
+        with meta.lock:  # pins stay: a reader of the old pair may hold one, and publish waits for it
             meta.state[MapMeta.FRONT] = -1
-        return SharedMap(meta, torch.zeros(2, size, dtype=torch.float32).share_memory_())
+            meta.state[MapMeta.GENERATION] += 1
+            generation = int(meta.state[MapMeta.GENERATION])
+        return SharedMap(meta, buffers, generation)
 
     def _check(self, layout: list) -> None:
         size = sum(n for _, _, n in layout)
@@ -220,7 +230,7 @@ class SharedMap:
         with self.meta.lock:
             front = int(self.meta.state[MapMeta.FRONT])
             version = int(self.meta.state[MapMeta.VERSION])
-            if front < 0 or version == have_version:
+            if front < 0 or version == have_version or int(self.meta.state[MapMeta.GENERATION]) != self.generation:
                 return None
             self.mapped = int(self.meta.state[MapMeta.MAPPED])
             self.meta.state[MapMeta.PINS + front] += 1
@@ -253,14 +263,17 @@ class Counter(IntEnum):
     PUBLISHES = 9  # mapper
     READ_SECONDS = 10  # tracker: total time spent copying the map in
     READS = 11  # tracker
-    POINTS_OUTSIDE = 12  # tracker: depth points outside the bound (as SLAM.points_outside)
-    POINTS_SEEN = 13  # tracker
+    POINTS_OUTSIDE = 12  # mapper: keyframe depth points the map could not cover (SceneMap.points_outside)
+    POINTS_SEEN = 13  # mapper
     TRACKER_PEAK_MB = 14
     MAPPER_PEAK_MB = 15
     TRACKER_BUSY = 16  # tracker: 1 while it has a frame to track (0: waiting for frames or for the first map)
     MAPPER_BUSY = 17  # mapper: 1 during a mapping step
     TRACKER_BEAT = 18  # tracker: time.monotonic() of its latest sign of life (loop pass or optimiser iteration)
     MAPPER_BEAT = 19  # mapper: the same
+    MAP_BYTES = 20  # mapper: bytes of the field's parameters (grows with the explored area)
+    KEYFRAME_BYTES = 21  # mapper: bytes of the keyframe store (bounded by mapping.keyframe_budget_mb)
+    KEYFRAMES_KEPT = 22  # mapper: keyframes in the store
 
 
 class HealthBoard:

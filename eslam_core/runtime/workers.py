@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import ctypes
 import dataclasses
+import io
 import logging
 import os
 import queue
@@ -56,11 +57,15 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
-from eslam_core.representation.field import SceneField
-from eslam_core.frames import PreparedFrame, working_intrinsics
+from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics
 from eslam_core.mapping.keyframes import Keyframe
+from eslam_core.mapping.observed import ObservedSurfaces
+from eslam_core.mapping.scene_map import SceneMap, initial_extent, surface_points
 from eslam_core.native import load_kernel
-from eslam_core.slam import SLAM, StepResult
+from eslam_core.representation.field import SceneField
+from eslam_core.slam import new_keyframe
+from eslam_core.tracking.frontend import TrackingFrontEnd
+from eslam_core.trajectory import FrameRecord, TrackedTrajectory
 from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap
 
 log = logging.getLogger("eslam")
@@ -83,33 +88,32 @@ class WorkerReady:
 @dataclass
 class KeyframeMessage:  # tracker -> mapper
     epoch: int
-    position: int  # in the keyframe list
+    number: int  # keyframe number (0, 1, ... in order of creation)
     frame_index: int
     timestamp: float
     rgb: np.ndarray  # (H, W, 3) uint8
     depth: np.ndarray  # (H, W) int16 (uint16 bits, see keyframes.DEPTH_STEP)
     usable: np.ndarray  # (H, W) bool
     pose: np.ndarray  # (4, 4) float32
-    bound: Optional[np.ndarray]  # with keyframe 0: the scene bound the map is built over
+    extent: Optional[np.ndarray]  # with keyframe 0: the extent the map starts with
+
+    @staticmethod
+    def of(epoch: int, kf: Keyframe, extent: Optional[np.ndarray]) -> "KeyframeMessage":
+        return KeyframeMessage(epoch, kf.number, kf.frame_index, kf.timestamp, kf.rgb.numpy(), kf.depth.numpy(),
+                               kf.usable.numpy(), kf.pose.numpy(), extent)
 
     def keyframe(self) -> Keyframe:
         return Keyframe(self.frame_index, self.timestamp, torch.from_numpy(self.rgb), torch.from_numpy(self.depth),
-                        torch.from_numpy(self.usable), torch.from_numpy(self.pose))
+                        torch.from_numpy(self.usable), torch.from_numpy(self.pose), self.number)
 
 
 @dataclass
 class TrackedFrame:  # tracker -> parent
     epoch: int
-    index: int
-    timestamp: float
-    pose: np.ndarray  # (4, 4) camera-to-world when tracked
-    tracking_loss: float
+    record: FrameRecord  # the pose as tracked, and relative to its keyframe
     keyframe: bool
     latency_s: float
     done: float  # time.monotonic() when the pose was available
-    reference: int  # keyframe position the pose is stored relative to
-    relative: np.ndarray
-    gt_pose: Optional[np.ndarray]
 
 
 @dataclass
@@ -120,15 +124,17 @@ class TrackerFinished:  # tracker -> mapper and parent: no more frames (input dr
 
 
 @dataclass
-class MapAttach:  # mapper -> tracker, after the warm-up: where the map is
+class MapAttach:  # mapper -> tracker, after the warm-up and after every growth: where the map is, and its extent
     epoch: int
     buffers: torch.Tensor
+    generation: int
+    extent: np.ndarray
 
 
 @dataclass
 class RefinedPoses:  # mapper -> tracker
     epoch: int
-    poses: dict  # keyframe position -> (4, 4) float32
+    poses: dict  # keyframe number -> (4, 4) float32
 
 
 @dataclass
@@ -158,7 +164,8 @@ class SnapshotRequest:  # parent -> mapper
 class MapperSnapshot:  # mapper -> parent
     request_id: int
     epoch: int
-    state: dict  # bound, field, keyframes (stacked tensors), rng; None values before the first keyframe
+    # SceneMap.state_dict() as torch.save bytes (one copy, no tensor handles to share); None before keyframe 0
+    state: Optional[bytes]
 
 
 # ------------------------------------------------------------------------------------------------- set-up, faults
@@ -321,25 +328,44 @@ class Interrupted(Exception):
 
 # ------------------------------------------------------------------------------------------------------- tracker
 
-class PipelinedTracking(SLAM):
-    """The lock-step schedule of `SLAM` without mapping: new keyframes are listed in `handed_over` for the
-    mapper process. Its `field` is the tracker's own copy of the map, refreshed from shared memory."""
+class MapReplica:
+    """The tracking process's view of the mapper's map (a `MapView`): a copy of the field refreshed from shared
+    memory, its extent, observed space fed by the keyframes as mapping fits them, and the newest keyframe (its
+    images, for the SDF tracker's photometric term; the mapper keeps every keyframe's)."""
 
-    def __init__(self, cfg: Config, intrinsics: Intrinsics):
-        super().__init__(cfg, intrinsics)
-        self.handed_over: list[int] = []
+    def __init__(self, cfg: Config, intr: Intrinsics, dirs_cam: torch.Tensor):
+        self.cfg, self.intr, self.dirs_cam = cfg, intr, dirs_cam
+        self.extent: Optional[np.ndarray] = None
+        self.field: Optional[SceneField] = None
+        self.observed: Optional[ObservedSurfaces] = None
+        self.newest: Optional[Keyframe] = None
 
-    def _first_frame(self, pf: PreparedFrame) -> StepResult:
-        pose0 = self._start_map(pf)
-        self.handed_over.append(0)
-        return StepResult(pf.index, pose0, 0.0, True, float("nan"))
+    @property
+    def started(self) -> bool:
+        return self.field is not None
 
-    def _map_current(self) -> float:
-        self.handed_over.append(len(self.keyframes) - 1)
-        return float("nan")
+    def start(self, extent: np.ndarray) -> None:
+        self.extent = extent
+        self.field = SceneField(extent, self.cfg.model)
+        self.observed = ObservedSurfaces(extent, self.cfg.model.truncation)
 
+    def attach(self, extent: np.ndarray) -> None:
+        """The mapper's map over `extent` (grown, or as started): a field of that size to copy it into."""
+        if not np.array_equal(extent, self.extent):
+            self.extent = np.asarray(extent)
+            self.field = SceneField(self.extent, self.cfg.model)
+            self.observed.grow(self.extent)
 
-EMPTY_IMAGE = torch.zeros(0, 0, dtype=torch.uint8)
+    def add_keyframe(self, kf: Keyframe) -> None:
+        self.newest = kf
+        self.observed.add_keyframe(surface_points(self.dirs_cam, kf, self.intr.width))
+
+    def refine(self, poses: dict) -> None:
+        if self.newest is not None and self.newest.number in poses:
+            self.newest.pose = torch.from_numpy(poses[self.newest.number])
+
+    def newest_keyframe(self) -> Optional[Keyframe]:
+        return self.newest
 
 
 class TrackerWorker:
@@ -349,6 +375,7 @@ class TrackerWorker:
         self.live = setup.policy == "live"
         self.faults = FaultPlan.parse(setup.faults)
         self.cfg, self.intr = working_setup(setup.cfg, setup.intrinsics)
+        self.dirs_cam = pixel_directions_table(self.intr)
         self.epoch = ch.control.epoch
         self._new_state()
         self.tracked = 0
@@ -358,10 +385,11 @@ class TrackerWorker:
         register_optimizer_step_post_hook(lambda *args: self.cores.update())  # the rendering tracker's iterations
 
     def _new_state(self) -> None:
-        self.state = PipelinedTracking(self.cfg, self.intr)
+        self.frontend = TrackingFrontEnd(self.cfg, self.intr, self.dirs_cam)
+        self.trajectory = TrackedTrajectory()
+        self.replica = MapReplica(self.cfg, self.intr, self.dirs_cam)
         self.map: Optional[SharedMap] = None
         self.map_version = -1
-        self.counted_outside = (0, 0)
 
     def run(self) -> None:
         self.ch.to_parent.put(WorkerReady("tracker", os.getpid()))
@@ -400,11 +428,12 @@ class TrackerWorker:
         while msg is not None:
             if msg.epoch == self.epoch:
                 if isinstance(msg, MapAttach):
-                    self.map = SharedMap(self.ch.map_meta, msg.buffers)
+                    self.map = SharedMap(self.ch.map_meta, msg.buffers, msg.generation)
+                    self.replica.attach(msg.extent)
                     self.map_version = -1
                 elif isinstance(msg, RefinedPoses):
-                    for i, pose in msg.poses.items():
-                        self.state.keyframes[i].pose = torch.from_numpy(pose)
+                    self.trajectory.refine(msg.poses)
+                    self.replica.refine(msg.poses)
             msg = _get(self.ch.to_tracker, 0.0)
 
     def _wait_for_map(self) -> None:
@@ -418,9 +447,9 @@ class TrackerWorker:
             self.cores.update()
 
     def _refresh_map(self) -> None:
-        version = self.map.read_into(self.state.field, self.map_version)
+        version = self.map.read_into(self.replica.field, self.map_version)
         if version is not None:
-            self.state.observe_mapped(self.map.mapped)
+            self.replica.observed.mapped(self.map.mapped)
             log.debug("tracker: map version %d (%.1f ms to copy in)", version, 1000 * self.map.read_seconds)
             self.map_version = version
             self.ch.board.add(Counter.READ_SECONDS, self.map.read_seconds)
@@ -428,46 +457,41 @@ class TrackerWorker:
 
     def _track(self, item) -> None:
         self.faults.check("tracker", self.tracked)
-        if self.state.field is not None:
+        if self.replica.started:
             self._wait_for_map()
             self._refresh_map()
         self.cores.busy(True)
-        frame = Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose)
         start = time.monotonic()
-        res = self.state.step(frame)
+        pf = prepare_frame(Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose), self.intr,
+                           self.cfg.camera)
+        if not self.replica.started:  # the first frame starts the map; the mapper warms it up
+            pose0, keyframe = self.frontend.first_pose(pf), True
+            extent = initial_extent(self.cfg, pf, self.intr, pose0)
+            self.replica.start(extent)
+            record = self.trajectory.record(pf.index, pf.timestamp, pose0, 0.0, pf.gt_pose, keyframe=True)
+            self._hand_over(new_keyframe(pf, torch.from_numpy(pose0).float(), 0), extent)
+        else:
+            tracked = self.frontend.track(pf, self.replica, self.trajectory)
+            keyframe = tracked.keyframe
+            record = self.trajectory.record(pf.index, pf.timestamp, tracked.pose.double().numpy(), tracked.loss,
+                                            pf.gt_pose, keyframe)
+            if keyframe:
+                self._hand_over(new_keyframe(pf, tracked.pose, record.reference), None)
         done = time.monotonic()
         log.debug("tracker: frame %d tracked in %.2f s (%d threads)", item.index, done - start, torch.get_num_threads())
-        for position in self.state.handed_over:
-            self._hand_over(position)
-        self.state.handed_over.clear()
-        rec = self.state.records[-1]
-        self.ch.to_parent.put(TrackedFrame(self.epoch, res.index, item.timestamp, res.pose, res.tracking_loss,
-                                           res.keyframe, done - item.arrival, done, rec.reference, rec.relative,
-                                           rec.gt_pose))
+        self.ch.to_parent.put(TrackedFrame(self.epoch, record, keyframe, done - item.arrival, done))
         self.tracked += 1
-        board = self.ch.board
-        board.add(Counter.TRACKED)
-        board.add(Counter.POINTS_OUTSIDE, self.state.points_outside - self.counted_outside[0])
-        board.add(Counter.POINTS_SEEN, self.state.points_seen - self.counted_outside[1])
-        self.counted_outside = (self.state.points_outside, self.state.points_seen)
-        board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
+        self.ch.board.add(Counter.TRACKED)
+        self.ch.board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
 
-    def _hand_over(self, position: int) -> None:
-        """Send a new keyframe to the mapper; keep only the poses of the older ones here."""
-        kf = self.state.keyframes[position]
-        bound = self.state.bound.copy() if position == 0 else None
-        self.ch.to_mapper.put(KeyframeMessage(self.epoch, position, kf.frame_index, kf.timestamp, kf.rgb.numpy(),
-                                              kf.depth.numpy(), kf.usable.numpy(), kf.pose.numpy(), bound))
-        # The images live in the mapper; the newest keyframe's stay here too, for the photometric term of the
-        # SDF tracker, until the next keyframe replaces it.
-        if position > 0:
-            older = self.state.keyframes[position - 1]
-            self.state.keyframes[position - 1] = dataclasses.replace(older, rgb=EMPTY_IMAGE, depth=EMPTY_IMAGE,
-                                                                     usable=EMPTY_IMAGE)
+    def _hand_over(self, kf: Keyframe, extent: Optional[np.ndarray]) -> None:
+        """Send a new keyframe to the mapper; keep only the newest one's images here."""
+        self.replica.add_keyframe(kf)
+        self.ch.to_mapper.put(KeyframeMessage.of(self.epoch, kf, extent))
         self.ch.board.add(Counter.KEYFRAMES)
 
     def _finish(self) -> None:
-        done = TrackerFinished(self.epoch, len(self.state.records), len(self.state.keyframes))
+        done = TrackerFinished(self.epoch, len(self.trajectory), self.trajectory.keyframes)
         self.ch.to_mapper.put(done)
         self.ch.to_parent.put(done)
         self.finished = True
@@ -486,6 +510,8 @@ class MapperWorker:
         self.ch = ch
         self.live = setup.policy == "live"
         self.faults = FaultPlan.parse(setup.faults)
+        self.cfg, self.intr = working_setup(setup.cfg, setup.intrinsics)
+        self.dirs_cam = pixel_directions_table(self.intr)
         self.epoch = ch.control.epoch
         self.early: list = []  # messages of an epoch this worker has not caught up with yet (see _receive)
         self.steps = 0  # mapping steps done (the warm-up is step 0), over all epochs
@@ -498,7 +524,7 @@ class MapperWorker:
         register_optimizer_step_post_hook(self._after_iteration)
 
     def _new_state(self) -> None:
-        self.slam: Optional[SLAM] = None
+        self.scene: Optional[SceneMap] = None
         self.pending: deque = deque()  # keyframes received, not yet mapped
         self.map: Optional[SharedMap] = None
         self.steps_in_epoch = 0
@@ -560,7 +586,7 @@ class MapperWorker:
         self.ch.board.set(Counter.KEYFRAME_BACKLOG, len(self.pending) + int(self.mapping))
 
     def _keyframe_count(self) -> int:
-        return (len(self.slam.keyframes) if self.slam is not None else 0) + len(self.pending)
+        return (self.scene.keyframes.made if self.scene is not None else 0) + len(self.pending)
 
     # ------------------------------------------------------------------------------------------- mapping steps
     def _map_next(self) -> None:
@@ -575,46 +601,54 @@ class MapperWorker:
 
     def _map_next_keyframe(self) -> None:
         start = time.perf_counter()
-        if self.slam is None:
+        if self.scene is None:
             refined, loss = {}, self._start_map(self.pending.popleft())
+            attach = True
         else:
+            field = self.scene.field
             if self.backlog_limit is not None:  # too far behind: the older keyframes join the newest one's window
                 while len(self.pending) > self.backlog_limit + 1:
-                    self.slam.keyframes.append(self.pending.popleft().keyframe())
-            self.slam.keyframes.append(self.pending.popleft().keyframe())
+                    self.scene.add_keyframe(self.pending.popleft().keyframe())
+            self.scene.add_keyframe(self.pending.popleft().keyframe())
             self._update_backlog()
-            before = torch.stack([kf.pose for kf in self.slam.keyframes])
-            loss = self._step(self.slam._map_current)
-            refined = {i: kf.pose.numpy().copy() for i, kf in enumerate(self.slam.keyframes)
-                       if not torch.equal(kf.pose, before[i])}
+            attach = self.scene.field is not field  # grown: a new map, in new shared buffers
+            if attach:
+                self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
+            step = self._step(lambda: self.scene.map_newest(self._behind if self.setup.catch_up_iterations else None))
+            loss, refined = (step.loss, {i: p.numpy().copy() for i, p in step.refined.items()}) if step else \
+                (float("nan"), {})
         version = self._publish()
         log.debug("mapper: step %d done in %.2f s (%d threads at the end), map version %d", self.steps,
                   time.perf_counter() - start, torch.get_num_threads(), version)
-        if self.map is not None and self.steps_in_epoch == 0:
-            self.ch.to_tracker.put(MapAttach(self.epoch, self.map.buffers))
-        elif refined:
+        if attach:
+            self.ch.to_tracker.put(MapAttach(self.epoch, self.map.buffers, self.map.generation, self.scene.extent))
+        if refined:
             self.ch.to_tracker.put(RefinedPoses(self.epoch, refined))
         self.steps_in_epoch += 1
         self.steps += 1
-        self.ch.board.add(Counter.MAPPING_STEPS)
-        self.ch.board.set(Counter.MAPPER_PEAK_MB, peak_rss_mb())
+        board = self.ch.board
+        board.add(Counter.MAPPING_STEPS)
+        board.set(Counter.MAPPER_PEAK_MB, peak_rss_mb())
+        board.set(Counter.POINTS_OUTSIDE, self.scene.points_outside)
+        board.set(Counter.POINTS_SEEN, self.scene.points_seen)
+        memory = self.scene.memory()
+        board.set(Counter.MAP_BYTES, memory["map_bytes"])
+        board.set(Counter.KEYFRAME_BYTES, memory["keyframe_bytes"])
+        board.set(Counter.KEYFRAMES_KEPT, memory["keyframes_kept"])
         self.ch.to_parent.put(MappingReport(self.epoch, self.steps, version, loss, time.perf_counter() - start,
                                             time.monotonic(), refined))
 
     def _start_map(self, msg: KeyframeMessage) -> float:
-        """The map of the first keyframe, over the bound the tracker chose, and its warm-up."""
+        """The map of the first keyframe, over the extent the tracker chose, and its warm-up."""
         self._update_backlog()
-        self.slam = SLAM(self.setup.cfg, self.setup.intrinsics)  # its images arrive at the working resolution
-        if self.setup.catch_up_iterations is not None:
-            self.slam.stop_mapping_early = self._behind
-        self.slam.bound = msg.bound
-        self.slam.field = SceneField(msg.bound, self.setup.cfg.model)
-        self.slam.keyframes = [msg.keyframe()]
-        self.map = SharedMap.create(self.ch.map_meta, self.slam.field)
-        return self._step(lambda: self.slam.mapper.map(self.slam.field, self.slam.keyframes, [0], first=True).loss,
-                          publish=False)
+        self.scene = SceneMap(self.cfg, self.intr, self.dirs_cam)
+        self.scene.start(msg.extent)
+        self.scene.add_keyframe(msg.keyframe())
+        self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
+        step = self._step(self.scene.warm_up, publish=False)
+        return step.loss if step else float("nan")
 
-    def _step(self, run, publish: bool = True) -> float:
+    def _step(self, run, publish: bool = True):
         self.iterations = 0
         self.publishing_mid_step = publish
         try:
@@ -622,7 +656,7 @@ class MapperWorker:
         except Interrupted:
             if self.ch.control.epoch != self.epoch or self.ch.control.exiting:
                 raise
-            return float("nan")  # stopping: keep the map as it is after the last completed iteration
+            return None  # stopping: keep the map as it is after the last completed iteration
         finally:
             self.publishing_mid_step = False
 
@@ -636,8 +670,8 @@ class MapperWorker:
 
     def _publish(self, step_done: bool = True) -> int:
         # In the middle of a step the newest keyframe is not fitted yet.
-        mapped = len(self.slam.keyframes) - (0 if step_done else 1)
-        version = self.map.publish(self.slam.field, mapped)
+        mapped = self.scene.keyframes.made - (0 if step_done else 1)
+        version = self.map.publish(self.scene.field, mapped)
         self.ch.board.add(Counter.PUBLISH_SECONDS, self.map.publish_seconds)
         self.ch.board.add(Counter.PUBLISHES)
         return version
@@ -660,37 +694,34 @@ class MapperWorker:
             self.ch.to_parent.put(MapperSnapshot(req.request_id, self.epoch, self._snapshot(req)))
             req = _get(self.ch.commands, 0.0)
 
-    def _snapshot(self, req: SnapshotRequest) -> dict:
-        """The map, keyframes and window sampler state: what a `SLAM` checkpoint needs besides the trajectory."""
+    def _snapshot(self, req: SnapshotRequest) -> Optional[bytes]:
+        """The scene map (field, keyframes, window sampler): what a `SLAM` checkpoint needs besides the
+        trajectory, once it holds the `min_keyframes` the parent has seen."""
         if req.epoch != self.epoch or req.min_keyframes == 0:
-            return {"bound": None, "field": None, "keyframes": None, "rng": None}
+            return None
         while self._keyframe_count() < req.min_keyframes:  # keyframes still in flight from the tracker
             if self.ch.control.exiting or self.ch.control.epoch != self.epoch:
-                return {"bound": None, "field": None, "keyframes": None, "rng": None}  # moot: reset or exit
+                return None  # moot: reset or exit
             self._receive(POLL_S)
             self.cores.update()
-        if self.slam is None:  # asked before the warm-up started: a map that is still random
+        if self.scene is None:  # asked before the warm-up started: a map that is still random
             first = self.pending[0]
-            bound, field_state = first.bound, SceneField(first.bound, self.setup.cfg.model).state_dict()
-            rng = np.random.default_rng(self.setup.cfg.run.seed).bit_generator.state
-        elif self.slam is not None:
-            bound, field_state, rng = self.slam.bound, self.slam.field.state_dict(), self.slam.rng.bit_generator.state
-        keyframes = (self.slam.keyframes if self.slam is not None else []) + [m.keyframe() for m in self.pending]
-        keyframes = keyframes[: req.min_keyframes]
-        return {
-            "bound": torch.from_numpy(np.asarray(bound, dtype=np.float64)),
-            # Copies: sending a tensor moves its storage to shared memory, and the live parameters must stay ours.
-            "field": {k: v.detach().clone() for k, v in field_state.items()},
-            "keyframes": {
-                "frame_index": torch.tensor([kf.frame_index for kf in keyframes], dtype=torch.int64),
-                "timestamp": torch.tensor([kf.timestamp for kf in keyframes], dtype=torch.float64),
-                "rgb": torch.stack([kf.rgb for kf in keyframes]),
-                "depth": torch.stack([kf.depth for kf in keyframes]),
-                "usable": torch.stack([kf.usable for kf in keyframes]),
-                "pose": torch.stack([kf.pose for kf in keyframes]),
-            },
-            "rng": rng,
-        }
+            scene = SceneMap(self.cfg, self.intr, self.dirs_cam)
+            scene.start(first.extent)
+            scene.add_keyframe(first.keyframe())
+        else:
+            scene = self.scene
+        state = scene.state_dict()
+        for msg in self.pending:  # received, not mapped yet: keyframes of the map all the same
+            if msg.number >= state["keyframes_made"]:
+                state["keyframes"].append(dict(msg.keyframe().__dict__))
+                state["keyframes_made"] = msg.number + 1
+        # The parent's trajectory knows the first `min_keyframes`: a checkpoint holds those, not newer ones.
+        state["keyframes"] = [kf for kf in state["keyframes"] if kf["number"] < req.min_keyframes]
+        state["keyframes_made"] = min(state["keyframes_made"], req.min_keyframes)
+        buf = io.BytesIO()
+        torch.save(state, buf)
+        return buf.getvalue()
 
 
 def mapper_main(setup: WorkerSetup, channels: Channels, errors) -> None:

@@ -1,0 +1,206 @@
+"""The scene map: where the map is (its extent, and how it grows), the field over it, the keyframe store, observed
+space, and the mapping step that fits the field to the keyframes.
+
+The extent starts as `scene.bound` (then a hard limit) or around the first frame. Without a configured bound it
+grows by whole coarse cells wherever a new keyframe's depth falls outside it (up to `scene.max_extent` per axis):
+the planes of both fields and both scales are extended, existing features stay where they are, and every growth is
+a new field object (the pipelined runtime publishes it as a new map). Depth the map cannot cover is counted.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+
+from eslam_core.camera import Intrinsics
+from eslam_core.config import Config
+from eslam_core.frames import PreparedFrame
+from eslam_core.geometry import depth_points_world
+from eslam_core.mapping.extent import estimate_bound, grow_to_multiple, grown_extent, outside_mask
+from eslam_core.mapping.keyframes import Keyframe, KeyframeStore, select_window
+from eslam_core.mapping.mapper import Mapper
+from eslam_core.mapping.observed import ObservedSurfaces
+from eslam_core.representation.field import SceneField
+
+log = logging.getLogger("eslam")
+
+
+@dataclass
+class MappingStep:
+    loss: float
+    refined: dict  # keyframe number -> refined (4, 4) float32 pose
+
+
+def initial_extent(cfg: Config, pf: PreparedFrame, intr: Intrinsics, pose0: np.ndarray) -> np.ndarray:
+    """`scene.bound` when given, else the first frame's points with a margin, whole coarse cells per axis."""
+    step = cfg.model.coarse_resolution
+    if cfg.scene.bound is not None:
+        return grow_to_multiple(np.array(cfg.scene.bound, dtype=np.float64), step)
+    return estimate_bound(pf.depth.numpy(), intr, pose0, cfg.scene.bound_margin, step)
+
+
+def surface_points(dirs_cam: torch.Tensor, kf: Keyframe, width: int, stride: int = 2,
+                   usable_only: bool = True) -> torch.Tensor:
+    """World points of a keyframe's depth (every `stride`-th stored pixel; plenty for 6 cm voxels)."""
+    d = kf.depth_image()
+    take = torch.zeros_like(kf.usable)
+    take[::stride, ::stride] = True
+    ok = take & (d > 0) & (kf.usable if usable_only else True)
+    flat = torch.nonzero(ok.reshape(-1)).squeeze(1)
+    return depth_points_world(dirs_cam[kf.frame_pixels(flat, width)], d.reshape(-1)[flat], kf.pose)
+
+
+class SceneMap:
+    def __init__(self, cfg: Config, intr: Intrinsics, dirs_cam: torch.Tensor):
+        self.cfg, self.intr, self.dirs_cam = cfg, intr, dirs_cam
+        mc = cfg.mapping
+        self.keyframes = KeyframeStore(int(mc.keyframe_budget_mb * 2**20), keep_full=mc.window)
+        self.mapper = Mapper(cfg, dirs_cam, intr.height, intr.width)
+        self.rng = np.random.default_rng(cfg.run.seed)
+        self.extent: Optional[np.ndarray] = None
+        self.field: Optional[SceneField] = None
+        self.observed: Optional[ObservedSurfaces] = None
+        self.growths = 0
+        self.points_outside = 0  # keyframe depth points the map could not cover (outside the bound / max extent)
+        self.points_seen = 0
+        self._warned_outside = 0.0
+
+    @property
+    def started(self) -> bool:
+        return self.field is not None
+
+    @property
+    def growable(self) -> bool:
+        return self.cfg.scene.bound is None
+
+    def start(self, extent: np.ndarray) -> None:
+        self.extent = np.asarray(extent, dtype=np.float64)
+        self.field = SceneField(self.extent, self.cfg.model)
+        self.observed = ObservedSurfaces(self.extent, self.cfg.model.truncation)
+        log.info("map: %d parameters (%.1f MB) over %s", self.field.parameter_count(), self.field.nbytes() / 2**20,
+                 np.round(self.extent, 3).tolist())
+
+    # ------------------------------------------------------------------------------------------------ keyframes
+    def add_keyframe(self, kf: Keyframe) -> None:
+        """Take a new keyframe: grow the map to its depth where allowed, mark what stays outside unusable."""
+        points = surface_points(self.dirs_cam, kf, self.intr.width, stride=1, usable_only=False)
+        flat_ok = (kf.depth_image() > 0).reshape(-1)
+        if self.growable:
+            self._grow_to(points, kf.frame_index)
+        outside = outside_mask(points, self.extent)
+        usable = kf.usable.reshape(-1).clone()
+        usable[torch.nonzero(flat_ok).squeeze(1)[outside]] = False
+        kf.usable = usable.reshape(kf.usable.shape)
+        self._count_outside(int(outside.sum()), len(points), kf.frame_index)
+        sample = points[~outside][torch.randint(int((~outside).sum()), (500,))] if (~outside).any() else None
+        self.keyframes.append(kf, self.intr, sample)
+        self.observed.add_keyframe(surface_points(self.dirs_cam, kf, self.intr.width))
+
+    def _grow_to(self, points: torch.Tensor, frame_index: int) -> None:
+        sc = self.cfg.scene
+        extent, left_out = grown_extent(self.extent, points, self.cfg.model.coarse_resolution, sc.bound_margin,
+                                        sc.max_extent)
+        if np.array_equal(extent, self.extent):
+            return
+        if left_out:
+            log.warning("frame %d: the map reached scene.max_extent (%.0f m per axis); %d depth points stay outside "
+                        "(stray depth? raise scene.max_extent or cut depth with camera.max_depth)", frame_index,
+                        sc.max_extent, left_out)
+        before, old_bytes = self.extent, self.field.nbytes()
+        self.grow(extent)
+        log.info("map grown at frame %d: %s -> %s, %d parameters, %.1f -> %.1f MB", frame_index,
+                 np.round(before, 2).tolist(), np.round(extent, 2).tolist(), self.field.parameter_count(),
+                 old_bytes / 2**20, self.field.nbytes() / 2**20)
+
+    def grow(self, extent: np.ndarray) -> None:
+        """A new, larger field over `extent` holding the current features (a new object: see the module docs)."""
+        self.extent = np.asarray(extent, dtype=np.float64)
+        self.field = self.field.grown(self.extent)
+        self.observed.grow(self.extent)
+        self.growths += 1
+
+    def _count_outside(self, n_out: int, n_valid: int, frame_index: int) -> None:
+        self.points_outside += n_out
+        self.points_seen += n_valid
+        frac = n_out / max(n_valid, 1)
+        if frac > 0.05 and frac > 2 * self._warned_outside:
+            self._warned_outside = frac
+            log.warning("frame %d: %.0f%% of its depth points lie outside the map (%s) and are not mapped (%d so "
+                        "far); %s", frame_index, 100 * frac, np.round(self.extent, 2).tolist(), self.points_outside,
+                        "enlarge or remove scene.bound in the config" if not self.growable else
+                        "raise scene.max_extent")
+
+    def newest_keyframe(self) -> Optional[Keyframe]:
+        return self.keyframes[-1] if len(self.keyframes) else None
+
+    def keyframe_poses(self) -> dict:
+        return {kf.number: kf.pose for kf in self.keyframes}
+
+    def set_keyframe_poses(self, poses: dict) -> None:
+        for number, pose in poses.items():
+            i = self.keyframes.position(int(number))
+            if i is not None:
+                self.keyframes[i].pose = torch.as_tensor(pose, dtype=torch.float32)
+
+    # -------------------------------------------------------------------------------------------------- mapping
+    def warm_up(self) -> MappingStep:
+        """The first keyframe mapped alone, pose fixed, for `mapping.first_iterations` (paper Sec. 3.4)."""
+        res = self.mapper.map(self.field, self.keyframes, [0], first=True)
+        self.observed.mapped(1)
+        return MappingStep(res.loss, {})
+
+    def map_newest(self, stop_early: Optional[Callable[[int], bool]] = None) -> MappingStep:
+        """One mapping step for the newest keyframe over its window; refined poses are written back."""
+        current = len(self.keyframes) - 1
+        kf = self.keyframes[current]
+        d = kf.depth_image().reshape(-1)
+        with_depth = torch.nonzero(d > 0).squeeze(1)
+        sample = with_depth[torch.randint(len(with_depth), (min(len(with_depth), 500),))] if len(with_depth) else \
+            with_depth
+        points = depth_points_world(self.dirs_cam[kf.frame_pixels(sample, self.intr.width)], d[sample], kf.pose)
+        window = select_window(self.keyframes, current, points, self.intr, self.cfg.mapping.window, self.rng)
+        mc = self.cfg.mapping
+        optimise_poses = mc.joint_poses and self.keyframes.made > mc.joint_poses_after
+        res = self.mapper.map(self.field, self.keyframes, window, first=False, optimise_poses=optimise_poses,
+                              stop_early=stop_early)
+        refined = {}
+        for i, pose in res.refined.items():
+            self.keyframes[i].pose = pose.float()
+            refined[self.keyframes[i].number] = self.keyframes[i].pose
+        self.observed.mapped(self.keyframes.made)
+        return MappingStep(res.loss, refined)
+
+    # --------------------------------------------------------------------------------------------- memory, state
+    def memory(self) -> dict:
+        """Bytes of the map and of the keyframe store (what grows with the explored area / with time)."""
+        return {"map_bytes": self.field.nbytes() if self.field is not None else 0,
+                "keyframe_bytes": self.keyframes.nbytes(), "keyframes_kept": len(self.keyframes),
+                "keyframes_reduced": sum(kf.stride > 1 for kf in self.keyframes),
+                "keyframes_dropped": self.keyframes.dropped, "map_growths": self.growths}
+
+    def state_dict(self) -> dict:
+        return {
+            "extent": None if self.extent is None else torch.from_numpy(self.extent),
+            "field": self.field.state_dict() if self.field is not None else None,
+            "keyframes": [dict(kf.__dict__) for kf in self.keyframes],
+            "keyframes_made": self.keyframes.made,
+            "points_outside": self.points_outside,
+            "points_seen": self.points_seen,
+            "rng": self.rng.bit_generator.state,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        if state["field"] is not None:
+            self.start(state["extent"].numpy())
+            self.field.load_state_dict(state["field"])
+        self.keyframes.replace_all([Keyframe(**kf) for kf in state["keyframes"]])
+        self.keyframes.made = max(self.keyframes.made, state["keyframes_made"])
+        if self.observed is not None:
+            for kf in self.keyframes:
+                self.observed.add_keyframe(surface_points(self.dirs_cam, kf, self.intr.width))
+            self.observed.mapped(len(self.keyframes))
+        self.points_outside, self.points_seen = state["points_outside"], state["points_seen"]
+        self.rng.bit_generator.state = state["rng"]
