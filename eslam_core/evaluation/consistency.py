@@ -45,7 +45,7 @@ MIN_FAR_OVERLAP = 0.3  # far pairs (revisits from another viewpoint): a third of
 class PairConsistency:
     """Depth agreement of one pair of frames under one set of poses (both directions pooled)."""
 
-    first: int  # frame positions in the sequence that was given
+    first: int  # frame numbers (`frame_numbers` given to sequence_consistency, else positions)
     second: int
     kind: str  # "near" | "far" | "keyframe"
     median_mm: float  # median |residual|; nan when nothing could be compared

@@ -660,7 +660,9 @@ def _consistency_markdown(consistency: Optional[dict]) -> list[str]:
         rows.append([f"median, {kind} pairs ({pairs})",
                      *(_number(k["median_mm"] if k else None, 1, "mm") for k in of_kind)])
     lines += _table(rows, header)
-    lines += ["", f"{consistency['frames']} frames (every {consistency['frame_step']}th of the run); pairs chosen by "
+    step = consistency["frame_step"]
+    lines += ["", f"{consistency['frames']} frames ({'all' if step == 1 else f'one in {step}'} of the run's); "
+                  f"pairs chosen by "
                   f"{consistency['pairs_chosen_by']}. Each pair's depths are warped into each other both ways; "
                   "points hidden in the other view are not compared.", ""]
     return lines
