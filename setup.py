@@ -31,6 +31,7 @@ setup(
         "tqdm",
         "matplotlib",
         "rosbags",
+        "opencv-python-headless>=4.8",  # relocalization: ORB features, PnP RANSAC
     ],
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
