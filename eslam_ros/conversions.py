@@ -29,6 +29,7 @@ from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 from std_msgs.msg import Header
 
 from eslam_core.camera import Intrinsics
+from eslam_core.geometry import orthonormalize
 
 
 class UnsupportedImageError(ValueError):
@@ -343,12 +344,13 @@ def quaternion_to_rotation(q_xyzw: np.ndarray) -> np.ndarray:
     )
 
 
-# A float32 pose from the tracker is orthonormal to ~1e-6; anything far beyond that is not a rotation.
-_ROTATION_TOLERANCE = 1e-4
+# Rotations drift from orthonormal (float32 optimiser output, poses composed over thousands of frames): the nearest
+# rigid transform is published. A matrix further than this from a rotation is not a drifted pose but a wrong one.
+_ROTATION_DRIFT_LIMIT = 1e-2
 
 
 def pose_to_msg(pose: np.ndarray) -> Pose:
-    """geometry_msgs/Pose of a 4x4 rigid transform (camera-to-world, camera = optical frame)."""
+    """geometry_msgs/Pose of a 4x4 rigid transform (camera-to-world, camera = optical frame), re-orthonormalised."""
     t = np.asarray(pose, dtype=np.float64)
     if t.shape != (4, 4):
         raise InvalidPoseError(f"pose must be a 4x4 matrix, got shape {t.shape}")
@@ -357,11 +359,13 @@ def pose_to_msg(pose: np.ndarray) -> Pose:
     rotation = t[:3, :3]
     error = np.abs(rotation.T @ rotation - np.eye(3)).max()
     bottom_error = np.abs(t[3] - [0, 0, 0, 1]).max()
-    if error > _ROTATION_TOLERANCE or np.linalg.det(rotation) < 0 or bottom_error > _ROTATION_TOLERANCE:
+    if error > _ROTATION_DRIFT_LIMIT or np.linalg.det(rotation) < 0 or bottom_error > _ROTATION_DRIFT_LIMIT:
         raise InvalidPoseError(
             f"pose is not a rigid transform (|R^T R - I| = {error:.2e}, det R = {np.linalg.det(rotation):.3f}, "
             f"bottom row {t[3].tolist()}); pass a camera-to-world [R t; 0 0 0 1] matrix"
         )
+    t = orthonormalize(t)
+    rotation = t[:3, :3]
     x, y, z, w = rotation_to_quaternion(rotation)
     return Pose(
         position=Point(x=float(t[0, 3]), y=float(t[1, 3]), z=float(t[2, 3])),

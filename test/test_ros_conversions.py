@@ -13,6 +13,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import Marker, MarkerArray
 
 from eslam_core.camera import Intrinsics
+from eslam_core.geometry import orthonormalize
 from eslam_ros.conversions import (
     InvalidCameraInfoError,
     InvalidPoseError,
@@ -238,6 +239,44 @@ def test_bad_poses_raise():
     zero.orientation.w = 0.0
     with pytest.raises(InvalidPoseError, match="quaternion"):
         msg_to_pose(zero)
+
+
+def _drift(rotation: np.ndarray) -> float:
+    """How far a matrix is from a rotation: max |R^T R - I|."""
+    r = np.asarray(rotation, dtype=np.float64)
+    return float(np.abs(r.T @ r - np.eye(3)).max())
+
+
+def test_published_poses_stay_orthonormal_over_10000_composed_updates():
+    """A tracker composes small motions into its pose in float32, here to first order (R (I + [w]x), not a rotation):
+    unchecked, the pose drifts away from a rotation without bound. Re-orthonormalised where it is made (as the
+    tracking front end does with geometry.orthonormalize) and published by pose_to_msg, every one of 10,000 poses
+    is published, as a rotation, and keeps to the composed motion."""
+    rng = np.random.default_rng(0)
+    unchecked = np.eye(4, dtype=np.float32)
+    pose = np.eye(4, dtype=np.float32)
+    worst_published, worst_gap, worst_made, worst_shift = 0.0, 0.0, 0.0, 0.0
+    for _ in range(10_000):
+        w, t = rng.normal(0.0, 0.01, 3), rng.normal(0.0, 0.005, 3)
+        motion = np.eye(4)
+        motion[:3, :3] += [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]]
+        motion[:3, 3] = t
+        unchecked = (unchecked @ motion).astype(np.float32)
+        pose = orthonormalize((pose @ motion).astype(np.float32)).astype(np.float32)
+        worst_made = max(worst_made, _drift(pose[:3, :3]))
+        published = msg_to_pose(pose_to_msg(pose))
+        worst_published = max(worst_published, _drift(published[:3, :3]))
+        worst_gap = max(worst_gap, float(np.abs(published[:3, :3] - pose[:3, :3]).max()))  # ~ radians
+        worst_shift = max(worst_shift, float(np.abs(published[:3, 3] - pose[:3, 3]).max()))
+    assert _drift(unchecked[:3, :3]) > 1.0  # what first-order updates do unchecked
+    assert worst_made < 1e-5 and worst_published < 1e-12 and worst_gap < 1e-5 and worst_shift == 0.0
+    # A pose ten times further from orthonormal than the old refusal threshold (1e-4) is published as its rotation.
+    drifted = np.eye(4)
+    drifted[:3, :3] = Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix() * (1 + 5e-4)
+    msg = pose_to_msg(drifted)
+    back = msg_to_pose(msg)
+    assert _drift(back[:3, :3]) < 1e-12
+    np.testing.assert_allclose(back[:3, :3], Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix(), atol=1e-9)
 
 
 def test_stamps_round_trip_to_the_nanosecond():
