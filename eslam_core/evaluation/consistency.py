@@ -89,19 +89,34 @@ class ConsistencyResult:
 
 
 def as_depth_metres(depth, depth_scale: Optional[float] = None) -> np.ndarray:
-    """float64 metres (H, W) of a depth image in metres (float) or raw units (integer, needs `depth_scale`);
-    torch tensors or numpy arrays. int16 images are read as the uint16 bits they hold (the keyframe store's)."""
-    if isinstance(depth, torch.Tensor):
-        depth = depth.detach().cpu().numpy()
-    array = np.asarray(depth)
+    """float64 metres of depth values in metres (float) or raw units (integer, needs `depth_scale`), any shape;
+    torch tensors or numpy arrays. int16 values are read as the uint16 bits they hold (the keyframe store's)."""
+    array = _image(depth)
     if array.dtype.kind == "f":
-        return array.astype(np.float64)
+        return np.asarray(array, dtype=np.float64)  # no copy when it is float64 already
     if array.dtype.kind not in "ui":
         raise ValueError(f"a depth image must hold numbers, got dtype {array.dtype}")
     if depth_scale is None:
         raise ValueError("integer depth images need depth_scale (raw units per metre, e.g. 1000 for millimetres)")
-    raw = array.view(np.uint16) if array.dtype == np.int16 else array
+    raw = array.astype(np.uint16) if array.dtype == np.int16 else array  # wraps: the uint16 bits
     return raw.astype(np.float64) / float(depth_scale)
+
+
+def _image(depth) -> np.ndarray:
+    """A numpy view of a depth image (a CPU torch tensor without a copy)."""
+    return depth.detach().cpu().numpy() if isinstance(depth, torch.Tensor) else np.asarray(depth)
+
+
+def _sampled_points(depth: np.ndarray, intrinsics: Intrinsics, stride: int, camera_to: np.ndarray,
+                    depth_scale: Optional[float], max_depth: float = 0.0) -> np.ndarray:
+    """Points (N, 3) of every `stride`-th pixel's depth, moved by `camera_to` (4x4). Only those pixels are read:
+    full-image pixel k * stride is pixel k of a camera with the intrinsics divided by the stride."""
+    sampled = as_depth_metres(depth[::stride, ::stride], depth_scale)
+    if max_depth > 0:
+        sampled = np.where(sampled <= max_depth, sampled, 0.0)
+    i = intrinsics
+    grid = Intrinsics(sampled.shape[1], sampled.shape[0], i.fx / stride, i.fy / stride, i.cx / stride, i.cy / stride)
+    return backproject(sampled, grid, np.asarray(camera_to, dtype=np.float64))
 
 
 def _pixels(points: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
@@ -110,17 +125,22 @@ def _pixels(points: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.
     return (intrinsics.fx * points[:, 0] / z + intrinsics.cx, intrinsics.fy * points[:, 1] / z + intrinsics.cy)
 
 
-def _measured_depth_at(depth: np.ndarray, u: np.ndarray, v: np.ndarray,
-                       edge_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Depth of image `depth` at sub-pixel (u, v), bilinear in inverse depth, and where it is defined: inside the
-    image, all four neighbours measured and within `edge_m` of each other (not across a depth edge)."""
+def _measured_depth_at(depth: np.ndarray, u: np.ndarray, v: np.ndarray, edge_m: float,
+                       depth_scale: Optional[float], max_depth: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (metres) of image `depth` at sub-pixel (u, v), bilinear in inverse depth, and where it is defined:
+    inside the image, all four neighbours measured (and within max_depth, if > 0) and within `edge_m` of each other
+    (not across a depth edge). Only the neighbours are read and converted."""
     height, width = depth.shape
     u0, v0 = np.floor(u), np.floor(v)
     inside = (u0 >= 0) & (v0 >= 0) & (u0 <= width - 2) & (v0 <= height - 2)
     iu = np.clip(u0, 0, width - 2).astype(np.int64)
     iv = np.clip(v0, 0, height - 2).astype(np.int64)
-    corners = np.stack([depth[iv, iu], depth[iv, iu + 1], depth[iv + 1, iu], depth[iv + 1, iu + 1]], axis=-1)
-    valid = inside & (corners > 0).all(axis=-1) & (np.ptp(corners, axis=-1) <= edge_m)
+    corners = as_depth_metres(
+        np.stack([depth[iv, iu], depth[iv, iu + 1], depth[iv + 1, iu], depth[iv + 1, iu + 1]], axis=-1), depth_scale)
+    measured = corners > 0
+    if max_depth > 0:
+        measured &= corners <= max_depth
+    valid = inside & measured.all(axis=-1) & (np.ptp(corners, axis=-1) <= edge_m)
     fu, fv = np.clip(u - u0, 0, 1), np.clip(v - v0, 0, 1)
     weights = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], axis=-1)
     inverse = (weights / np.where(corners > 0, corners, 1.0)).sum(axis=-1)
@@ -143,16 +163,11 @@ def warp_residuals(
 
     `source_to_target` = T_target^-1 @ T_source (camera-to-world poses). Every `stride`-th source pixel is used;
     depth beyond `max_depth` (0 = no cut) is not used in either image. Depths are metres, or raw integer units
-    with `depth_scale`.
+    with `depth_scale`; the cost is in the sampled pixels, not the image size.
     """
-    source = as_depth_metres(depth_source, depth_scale)
-    target = as_depth_metres(depth_target, depth_scale)
-    if max_depth > 0:
-        source = np.where(source <= max_depth, source, 0.0)
-        target = np.where(target <= max_depth, target, 0.0)
-    points = backproject(source, intrinsics, np.asarray(source_to_target, dtype=np.float64), stride=stride)
+    points = _sampled_points(_image(depth_source), intrinsics, stride, source_to_target, depth_scale, max_depth)
     u, v = _pixels(points, intrinsics)
-    measured, seen = _measured_depth_at(target, u, v, edge_m=agree_m)
+    measured, seen = _measured_depth_at(_image(depth_target), u, v, agree_m, depth_scale, max_depth)
     seen &= points[:, 2] > 0
     residual = points[:, 2] - measured
     hidden = seen & (residual > agree_m)
@@ -191,9 +206,8 @@ def view_overlap(depth_a, pose_a: np.ndarray, pose_b: np.ndarray, intrinsics: In
     """Fraction of a's depth points (about `samples_across` pixels along the shorter image side, so ~1200 at 4:3)
     that fall inside b's image, in front of b."""
     a_to_b = np.linalg.solve(np.asarray(pose_b, np.float64), np.asarray(pose_a, np.float64))
-    depth = as_depth_metres(depth_a, depth_scale)
-    stride = max(1, min(depth.shape) // samples_across)
-    points = backproject(depth, intrinsics, a_to_b, stride=stride)
+    depth = _image(depth_a)
+    points = _sampled_points(depth, intrinsics, max(1, min(depth.shape) // samples_across), a_to_b, depth_scale)
     if len(points) == 0:
         return 0.0
     u, v = _pixels(points, intrinsics)
@@ -300,7 +314,8 @@ def keyframe_consistency(
     Pairs: the previous keyframe (local consistency) and up to `max_pairs - 1` of the oldest keyframes that still
     overlap the newest by `min_overlap` (drift since the camera was last there). Images are float metres or
     integer raw units with `depth_scale` (torch or numpy, full frame resolution); poses 4x4 camera-to-world.
-    Cost at 640x480: a few ms for 4 pairs (every 8th pixel; overlap on ~300 points per keyframe).
+    Cost (640x480, 4 pairs, every 8th pixel, overlap on ~300 points per keyframe; only the pixels sampled are
+    read): 10 ms with 8 keyframes, 13 ms with 40, on the loaded 2-core machine; stride 16 about 4-8 ms.
     """
     n = len(depths)
     if n != len(poses):
