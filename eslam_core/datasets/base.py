@@ -19,6 +19,7 @@ import numpy as np
 from PIL import Image
 
 from eslam_core.camera import Frame, Intrinsics
+from eslam_core.geometry import orthonormalize
 
 
 class DatasetError(ValueError):
@@ -266,10 +267,7 @@ def checked_pose(matrix: np.ndarray, path: Path, line_number: Optional[int] = No
             f"{where}: not a rigid camera-to-world transform (rotation must be orthonormal, last row 0 0 0 1); "
             f"check the file is the ground-truth pose file of this data set"
         )
-    u, _, vt = np.linalg.svd(rotation)
-    matrix = matrix.copy()
-    matrix[:3, :3] = u @ vt  # a proper rotation: det > 0 was checked
-    return matrix
+    return orthonormalize(matrix)  # det > 0 was checked: the nearest rotation, not a flipped axis
 
 
 def read_matrix(path: Path, size: int, what: str) -> np.ndarray:
