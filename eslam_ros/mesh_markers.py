@@ -1,23 +1,28 @@
-"""A triangle mesh as a visualization_msgs/MarkerArray, built fast enough to publish a live map.
+"""Triangle meshes as visualization_msgs/MarkerArray messages, written fast enough to publish a live map.
 
-The array starts with a DELETEALL marker (so blocks left over from a larger previous mesh vanish), followed by
-TRIANGLE_LIST markers of at most `max_triangles_per_marker` triangles each: three corner points per triangle, with
-per-corner colours, identity pose and unit scale, in the mesh's frame (e.g. "map").
+Two forms:
+- a whole mesh (`serialize_mesh_marker_array`, `mesh_to_marker_array`): a DELETEALL marker (so blocks left over
+  from a larger previous mesh vanish), then TRIANGLE_LIST markers of at most `max_triangles_per_marker` triangles;
+- map blocks (`serialize_block_markers`): one TRIANGLE_LIST marker per block of the map, its id derived from the
+  block's integer coordinates (`block_marker_id`), so a message can carry only the blocks that changed (ADD with
+  the same id replaces a block in RViz and Foxglove) and those that became empty (DELETE).
+Markers have three corner points per triangle, per-corner colours, identity pose and unit scale, in the mesh's
+frame (e.g. "map").
 
-Filling Marker.points with 100k-triangle meshes through Python Point objects takes over a second, so
-`serialize_mesh_marker_array` writes the message's CDR bytes directly with numpy; rclpy publishers accept them
-as-is (`publisher.publish(data)`). `mesh_to_marker_array` builds the equivalent message object, for small meshes
-and for checking.
+Filling Marker.points with 100k-triangle meshes through Python Point objects takes over a second, so the
+`serialize_*` functions write the message's CDR bytes directly with numpy; rclpy publishers accept them as-is
+(`publisher.publish(data)`). `mesh_to_marker_array` builds the equivalent message object, for small meshes and for
+checking.
 
-Over `triangle_budget` triangles the mesh is subsampled: an evenly spaced subset of the faces is kept. Meshes from
-marching cubes list their faces in spatial order, so this thins the surface uniformly (it shows holes up close,
-which is acceptable for a live preview; save the full mesh to a file for close inspection).
+Over `triangle_budget` triangles a whole mesh is subsampled: an evenly spaced subset of the faces is kept. Meshes
+from marching cubes list their faces in spatial order, so this thins the surface uniformly (it shows holes up
+close, which is acceptable for a live preview; save the full mesh to a file for close inspection).
 """
 from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any, Iterable, Mapping, Optional
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -132,9 +137,11 @@ class _CdrWriter:
         if padding:
             self._raw(b"\x00" * padding)
 
-    def _raw(self, data: bytes) -> None:
-        self._chunks.append(data)
-        self._offset += len(data)
+    def _raw(self, data: Any) -> None:
+        """Bytes, or any C-contiguous buffer (kept by reference until getvalue: the big arrays are copied once)."""
+        view = memoryview(data)
+        self._chunks.append(view)
+        self._offset += view.nbytes
 
     def primitives(self, fmt: str, *values: Any) -> None:
         """Values of one primitive type (struct format letter, e.g. 'd', 'f', 'i', 'I', '?')."""
@@ -151,7 +158,7 @@ class _CdrWriter:
         self.primitives("I", len(elements))
         if len(elements):  # an empty sequence has no element to align
             self._align(alignment)
-            self._raw(np.ascontiguousarray(elements).tobytes())
+            self._raw(np.ascontiguousarray(elements))
 
     def time(self, stamp: Time) -> None:
         self.primitives("i", stamp.sec)
@@ -216,6 +223,38 @@ def serialize_mesh_marker_array(
     for marker_id, block in enumerate(blocks):
         color = (1.0, 1.0, 1.0, 1.0) if block.colors is not None else DEFAULT_MESH_COLOR
         _write_marker(w, header, ns, marker_id, Marker.TRIANGLE_LIST, Marker.ADD, color, block)
+    return w.getvalue()
+
+
+def block_marker_id(key: tuple[int, int, int]) -> int:
+    """The marker id of map block (i, j, k): 10 bits per coordinate (two's complement), so two blocks share an id
+    only if they are a multiple of 1024 blocks apart (a kilometre at 1 m blocks)."""
+    i, j, k = (int(c) & 0x3FF for c in key)
+    return (i << 20) | (j << 10) | k
+
+
+def serialize_block_markers(
+    blocks: Mapping[tuple[int, int, int], TriangleBlock],
+    removed: Iterable[tuple[int, int, int]],
+    frame_id: str,
+    stamp: Stamp,
+    ns: str = "mesh",
+    delete_all: bool = False,
+) -> bytes:
+    """CDR bytes of a MarkerArray for map blocks: a DELETEALL first if `delete_all` (a new map), a DELETE for each
+    block in `removed`, and an ADD (a TRIANGLE_LIST replacing any earlier marker of that id) for each of `blocks`."""
+    header = Header(stamp=to_time(stamp), frame_id=str(frame_id))
+    removed = list(removed)
+    w = _CdrWriter()
+    w.primitives("I", int(delete_all) + len(removed) + len(blocks))
+    if delete_all:
+        _write_marker(w, header, ns, 0, Marker.TRIANGLE_LIST, Marker.DELETEALL, (0.0, 0.0, 0.0, 0.0), None)
+    for key in removed:
+        _write_marker(w, header, ns, block_marker_id(key), Marker.TRIANGLE_LIST, Marker.DELETE, (0.0, 0.0, 0.0, 0.0),
+                      None)
+    for key, block in blocks.items():
+        color = (1.0, 1.0, 1.0, 1.0) if block.colors is not None else DEFAULT_MESH_COLOR
+        _write_marker(w, header, ns, block_marker_id(key), Marker.TRIANGLE_LIST, Marker.ADD, color, block)
     return w.getvalue()
 
 

@@ -75,11 +75,18 @@ class NodeSettings:
                                                             "emitted (end of stream); 0 = never")
     depth_scale: float = _param(0.0, "depth_scale", "depth units per metre of the depth images; 0 = by encoding "
                                                     "(16UC1/mono16: 1000, 32FC1: 1)")
-    mesh_period: float = _param(5.0, "mesh_period", "seconds between mesh publications on ~/mesh; 0 = never")
+    mesh_period: float = _param(5.0, "mesh_period", "seconds between two map snapshots meshed for ~/mesh (only "
+                                                     "changed blocks are published); 0 = no mesh on ~/mesh")
     mesh_resolution: float = _param(0.0, "mesh_resolution", "voxel size (m) of the published and saved meshes; "
                                                             "0 = eslam.mesh.resolution")
     mesh_triangle_budget: int = _param(100_000, "mesh_triangle_budget", "most triangles published on ~/mesh "
                                                                         "(evenly thinned above it)")
+    mesh_block_size: float = _param(1.0, "mesh_block_size", "edge (m) of the world blocks ~/mesh is cut into: one "
+                                                             "marker per block, re-sent only when its surface changed")
+    mesh_time_budget: float = _param(0.5, "mesh_time_budget", "seconds of meshing per ~/mesh message: a large map is "
+                                                              "meshed in pieces, changed blocks first")
+    mesh_nice: int = _param(19, "mesh_nice", "nice value (0-19) of the mesh process: 19 = only CPU time that tracking "
+                                             "and mapping leave")
     path_period: float = _param(1.0, "path_period", "seconds between ~/path publications")
     status_period: float = _param(1.0, "status_period", "seconds between ~/status publications")
     publish_tf: bool = _param(True, "publish_tf", "broadcast map_frame -> camera frame on /tf (when tf2_ros is "
@@ -118,6 +125,11 @@ class NodeSettings:
             value = getattr(self, attribute)
             check(math.isfinite(value) and value > 0, attribute, "must be a positive number of seconds")
         check(self.mesh_triangle_budget >= 1, "mesh_triangle_budget", "must be >= 1")
+        check(math.isfinite(self.mesh_block_size) and self.mesh_block_size > 0, "mesh_block_size",
+              "must be a positive number of metres")
+        check(math.isfinite(self.mesh_time_budget) and self.mesh_time_budget > 0, "mesh_time_budget",
+              "must be a positive number of seconds")
+        check(0 <= self.mesh_nice <= 19, "mesh_nice", "must be a nice value from 0 to 19")
         return self
 
 

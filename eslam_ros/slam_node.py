@@ -7,7 +7,7 @@ Data flow
                                                       +-- latest rgb/camera_info (cached, not paired)
     runtime.poll()        -> ~/pose, ~/odom, TF      (every 10 ms)
     runtime.trajectory()  -> ~/path                  (refined keyframe poses included, every path_period)
-    runtime.save_mesh()   -> ~/mesh                  (transient local, every mesh_period, under a triangle budget)
+    runtime.snapshot()    -> ~/mesh                  (blocks that changed, meshed at nice 19: mesh_publication.py)
     runtime.health()      -> ~/status                (diagnostic_msgs/DiagnosticArray, every status_period)
     services ~/save_mesh, ~/save_trajectory, ~/save_checkpoint, ~/reset (std_srvs/Trigger)
 
@@ -29,7 +29,6 @@ from __future__ import annotations
 import math
 import signal
 import sys
-import tempfile
 import threading
 import time
 import traceback
@@ -41,12 +40,12 @@ from typing import Any, Callable, Optional, Sequence, Union
 
 import numpy as np
 import rclpy
-import trimesh
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TransformStamped, Vector3
 from nav_msgs.msg import Odometry, Path as PathMsg
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -71,7 +70,7 @@ from eslam_ros.conversions import (
     stamp_to_sec,
     to_time,
 )
-from eslam_ros.mesh_markers import serialize_mesh_marker_array
+from eslam_ros.mesh_publication import MESH_POLL_S, MeshPublication
 from eslam_ros.node_params import (
     ESLAM_PREFIX,
     NodeParameterError,
@@ -460,8 +459,7 @@ class _Outputs:
 
     poses: int = 0
     paths: int = 0
-    meshes: int = 0
-    mesh_triangles: int = 0
+    poses_invalid: int = 0  # poses that were not rigid transforms (NaN, not a rotation): not published, counted
     restarts: int = 0
     dropped_while_starting: int = 0
     latency: _Latency = field(default_factory=_Latency)
@@ -499,7 +497,6 @@ class SlamNode(Node):
         self._last_image = time.monotonic()
         self._skipped_at_last_status = 0
         self._poses_at_last_status = (0, time.monotonic())
-        self._mesh_map_version: Any = None
 
         # Inputs, poses, path and status on one thread (in order); slow work (mesh, services) on another.
         self._io = MutuallyExclusiveCallbackGroup()
@@ -517,7 +514,14 @@ class SlamNode(Node):
         self.pose_pub = self.create_publisher(PoseStamped, "~/pose", output_qos())
         self.odom_pub = self.create_publisher(Odometry, "~/odom", output_qos())
         self.path_pub = self.create_publisher(PathMsg, "~/path", output_qos(1))
-        self.mesh_pub = self.create_publisher(MarkerArray, "~/mesh", latched_qos())
+        self.mesh = MeshPublication(
+            lambda data: self.mesh_pub.publish(data), s.map_frame, lambda: self.get_clock().now().to_msg(),
+            self.get_logger(), resolution=self._mesh_resolution() or self.config.mesh.resolution,
+            block_size=s.mesh_block_size, period=s.mesh_period, budget_s=s.mesh_time_budget,
+            triangle_budget=s.mesh_triangle_budget, nice=s.mesh_nice)
+        # A new subscriber gets every block of the mesh (messages carry only changes): see mesh_publication.py.
+        self.mesh_pub = self.create_publisher(MarkerArray, "~/mesh", latched_qos(), event_callbacks=(
+            PublisherEventCallbacks(matched=self.mesh.subscriber_matched)))
         self.status_pub = self.create_publisher(DiagnosticArray, "~/status", output_qos())
         self.tf_broadcaster = TransformBroadcaster(self) if (s.publish_tf and TransformBroadcaster) else None
 
@@ -527,7 +531,7 @@ class SlamNode(Node):
         if s.sync_idle_flush > 0:
             self.create_timer(min(0.1, s.sync_idle_flush), gate(self._flush_if_idle), callback_group=self._io)
         if s.mesh_period > 0:
-            self.create_timer(s.mesh_period, gate(self._publish_mesh), callback_group=self._slow)
+            self.create_timer(min(MESH_POLL_S, s.mesh_period), gate(self._publish_mesh), callback_group=self._slow)
         for name, handler in (("~/save_mesh", self._srv_save_mesh), ("~/save_trajectory", self._srv_save_trajectory),
                               ("~/save_checkpoint", self._srv_save_checkpoint), ("~/reset", self._srv_reset)):
             self.create_service(Trigger, name, gate(handler, when_closed=_refused), callback_group=self._slow)
@@ -669,9 +673,12 @@ class SlamNode(Node):
         try:
             pose, odom = pose_stamped(update.pose, stamp, map_frame), odometry(update.pose, twist, stamp, map_frame,
                                                                                child)
-        except InvalidPoseError as error:
+        except InvalidPoseError as error:  # NaN or not a rotation at all (drift is re-orthonormalised): skip it
+            self.outputs.poses_invalid += 1
             if self._throttle.allow("invalid_pose"):
-                self.get_logger().error(f"pose of frame {update.index} not published: {error}")
+                self.get_logger().warning(
+                    f"pose of frame {update.index} not published: {error} [{self.outputs.poses_invalid} invalid "
+                    f"poses skipped, {self.outputs.poses} published so far; publishing goes on]")
             return
         self.pose_pub.publish(pose)
         self.odom_pub.publish(odom)
@@ -690,28 +697,9 @@ class SlamNode(Node):
             self.outputs.paths += 1
 
     def _publish_mesh(self) -> None:
-        runtime = self.runtime
-        if runtime is None or self.failed:
+        if self.runtime is None or self.failed:
             return
-        version = runtime.health().as_dict().get("map_version")
-        if version is not None and version == self._mesh_map_version:
-            return  # the map has not changed since the last mesh
-        with tempfile.TemporaryDirectory(prefix="eslam_mesh_") as folder:
-            path = Path(folder) / "mesh.ply"
-            try:
-                runtime.save_mesh(path, resolution=self._mesh_resolution())
-            except ValueError as error:  # e.g. nothing mapped yet: an empty mesh
-                self.get_logger().info(f"no mesh to publish yet: {error}", throttle_duration_sec=30.0)
-                return
-            mesh = trimesh.load(path, process=False)
-        colors = mesh.visual.vertex_colors[:, :3] if mesh.visual.kind == "vertex" else None
-        data = serialize_mesh_marker_array(mesh.vertices, mesh.faces, colors,
-                                           self.settings.map_frame, self.get_clock().now().to_msg(),
-                                           ns="eslam_mesh", triangle_budget=self.settings.mesh_triangle_budget)
-        self.mesh_pub.publish(data)
-        self._mesh_map_version = version
-        self.outputs.meshes += 1
-        self.outputs.mesh_triangles = min(len(mesh.faces), self.settings.mesh_triangle_budget)
+        self.mesh.tick(self.runtime)  # the blocks that changed, meshed in a low-priority process
 
     def _mesh_resolution(self) -> Optional[float]:
         return self.settings.mesh_resolution or None
@@ -728,8 +716,8 @@ class SlamNode(Node):
         values.update({f"skipped_{reason}": count for reason, count in self.pipeline.skipped.items()})
         values["skipped_total"] = sum(self.pipeline.skipped.values())
         values["poses_published"] = self.outputs.poses
-        values["meshes_published"] = self.outputs.meshes
-        values["mesh_triangles"] = self.outputs.mesh_triangles
+        values["poses_invalid"] = self.outputs.poses_invalid
+        values.update(self.mesh.status())
         values["stream_restarts"] = self.outputs.restarts
         values["frames_dropped_while_starting"] = self.outputs.dropped_while_starting
         values["latency_ms_receive_to_pose_last"] = 1000 * self.outputs.latency.last
@@ -799,7 +787,7 @@ class SlamNode(Node):
                 self.runtime.reset()
             self._submitted.clear()
             self._previous_pose = None
-            self._mesh_map_version = None
+            self.mesh.reset()
 
     # ------------------------------------------------------------------------------------------ lifecycle
 
@@ -824,6 +812,7 @@ class SlamNode(Node):
         """
         if not self.gate.close(timeout=120.0):
             self.get_logger().warning("a callback is still running after 120 s; shutting down anyway")
+        self.mesh.close()
         if self._starter is not None:
             self._starter.join()  # the runtime bounds its own start-up time
         runtime = self.runtime
@@ -853,6 +842,7 @@ class SlamNode(Node):
 
     def abort(self) -> None:
         """Stop the runtime at once, saving nothing (a second Ctrl-C)."""
+        self.mesh.close()
         if self.runtime is not None:
             try:
                 self.runtime.close(timeout=0, drain=False)

@@ -159,6 +159,15 @@ class _Worker:
                        list(snapshot.keyframe_ids), snapshot.poses, [self.depths[k] for k in snapshot.keyframe_ids])
 
 
+def _lower_priority(pid: int, nice: int) -> None:
+    """Give a process the nice value `nice` (where the platform has nice values; elsewhere it still runs in a
+    process of its own)."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, pid, nice)
+    except (AttributeError, OSError):
+        pass
+
+
 def _exit_with_parent(parent_pid: int) -> None:
     """A thread that ends the process once its parent is gone (even SIGKILLed: the pipe alone would not tell a
     process blocked in recv)."""
@@ -176,10 +185,7 @@ def _serve(connection, setup: _Setup) -> None:
         signal.signal(sig, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
     _exit_with_parent(setup.parent_pid)
-    try:
-        os.nice(setup.nice)
-    except (AttributeError, OSError):  # no nice on this platform: it still runs in its own process
-        pass
+    _lower_priority(os.getpid(), setup.nice)
     torch.set_num_threads(1)
     worker = _Worker(setup)
     connection.send("ready")
@@ -237,6 +243,7 @@ class BackgroundMesher:
             self._process.start()
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        _lower_priority(self._process.pid, self.setup.nice)  # now, before it spends seconds importing torch
         child.close()
         try:
             started = self._connection.poll(START_TIMEOUT_S) and self._receive() == "ready"

@@ -1,0 +1,199 @@
+"""~/mesh: the map as block markers, re-sent only where it changed, meshed by a low-priority process.
+
+What a subscriber gets
+    The map is cut into world blocks (`mesh_block_size`, integer block coordinates; see
+    eslam_core/outputs/mesh_blocks.py), one TRIANGLE_LIST marker per block, its id derived from the block's
+    coordinates. Each message on ~/mesh carries only what changed since the previous one: an ADD for every block
+    whose surface changed (the same id, so RViz and Foxglove replace just that block) and a DELETE for every block
+    that became empty. A DELETEALL is sent only when the map is reset.
+Late subscribers
+    A message holds only changes, so replaying the last one (transient local, depth 1) would not give a newcomer
+    the map. Instead, whenever a subscription matches the publisher (a new RViz display, a Foxglove client: the
+    bridge subscribes per client, `ros2 bag record`), the next tick publishes every current block in one message;
+    subscribers that already have them just redraw them. The publisher stays transient local, so that subscribers
+    configured that way (as docs/ros.md used to ask) still match.
+Cost
+    Meshing runs in a process at nice 19 (`BackgroundMesher`): the node's process only takes the map snapshot and
+    writes the message bytes. Each job meshes for at most `mesh_time_budget` seconds (dirty blocks first), so the
+    first mesh of a large map arrives in pieces, one message each, rather than after one long stall. A new snapshot
+    is taken every `mesh_period` seconds when the map changed; until then, jobs continue on the last one while
+    blocks are still dirty. The figures of the last job are in ~/status (`mesh_*`).
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Optional
+
+from eslam_core.outputs.mesh import EmptyMeshError
+from eslam_core.outputs.mesh_worker import (BackgroundMesher, MesherCrashed, MeshSnapshot, MeshUpdate,
+                                            snapshot_for_meshing)
+from eslam_ros.mesh_markers import TriangleBlock, serialize_block_markers
+
+# Seconds between two looks at the mesh process (its results, new subscribers, the next job).
+MESH_POLL_S = 0.2
+NAMESPACE = "eslam_mesh"
+
+
+@dataclass
+class MeshFigures:
+    """What ~/status reports about the mesh (the `mesh_` prefix is added there)."""
+
+    publications: int = 0  # messages on ~/mesh
+    full_publications: int = 0  # of them: every block, for a new subscriber
+    blocks: int = 0  # blocks with surface, as published
+    triangles: int = 0  # triangles of those blocks, as published (after thinning)
+    blocks_sent_last: int = 0  # added or replaced by the last message
+    blocks_deleted_last: int = 0
+    blocks_meshed_last: int = 0  # by the last job
+    blocks_pending: int = 0  # dirty blocks the mesh process has not meshed yet
+    job_ms_last: float = 0.0  # wall time of the last job in the mesh process
+    job_cpu_ms_last: float = 0.0  # its CPU time
+    snapshot_ms_last: float = 0.0  # in the node: the runtime's snapshot and its conversion for the mesh process
+    publish_ms_last: float = 0.0  # in the node: writing and publishing the last message
+    cpu_s_total: float = 0.0  # CPU seconds the mesh process spent in all
+    errors: int = 0  # jobs that failed, and restarts of the mesh process
+
+
+class MeshPublication:
+    """Drives the mesh process and publishes its block updates. `tick` runs on one thread (the node's slow callback
+    group); `reset` and `subscriber_matched` may come from any thread."""
+
+    def __init__(self, publish: Callable[[bytes], None], frame_id: str, now: Callable[[], Any], logger: Any, *,
+                 resolution: float, block_size: float, period: float, budget_s: float, triangle_budget: int,
+                 nice: int = 19) -> None:
+        self._publish, self.frame_id, self._now, self.log = publish, frame_id, now, logger
+        self.period = period
+        self.mesher = BackgroundMesher(resolution, block_size, budget_s, triangle_budget, nice)
+        self.figures = MeshFigures()
+        self._blocks: dict[tuple, TriangleBlock] = {}  # what subscribers have
+        self._lock = threading.Lock()
+        self._full_wanted = False
+        self._meshed_version: Any = None  # map version of the last snapshot
+        self._last_snapshot = -float("inf")
+
+    # ------------------------------------------------------------------------------------------ events
+
+    def subscriber_matched(self, status: Any) -> None:
+        """Publisher matched-event callback: a new subscriber gets every block at the next tick."""
+        if getattr(status, "current_count_change", 1) > 0:
+            with self._lock:
+                self._full_wanted = True
+
+    def reset(self) -> None:
+        """A new map: subscribers drop every block (the one DELETEALL), the mesh process forgets the old map."""
+        with self._lock:
+            self.mesher.reset()
+            self._blocks.clear()
+            self._meshed_version, self._last_snapshot = None, -float("inf")
+            self.figures.blocks = self.figures.triangles = self.figures.blocks_pending = 0
+            self._publish(serialize_block_markers({}, [], self.frame_id, self._now(), NAMESPACE, delete_all=True))
+            self.figures.publications += 1
+
+    def close(self) -> None:
+        with self._lock:
+            self.mesher.close()
+
+    # ------------------------------------------------------------------------------------------ the tick
+
+    def tick(self, runtime: Any) -> None:
+        """One look at the mesh process, for a SLAM runtime (its map version and `snapshot()`)."""
+        self.step(runtime.health().map_version, lambda have: snapshot_for_meshing(runtime.snapshot(), have))
+
+    def step(self, map_version: Any, take_snapshot: Callable[[set], MeshSnapshot]) -> None:
+        """Publish the mesh process's update if one is ready, every block if a subscriber is new, and start the
+        next job when one is due: a new snapshot (`take_snapshot(ids of the keyframes whose depth the process
+        has)`) every `period` seconds if the map version changed, else a continuation while blocks are dirty."""
+        with self._lock:
+            try:
+                update = self.mesher.poll()
+            except MesherCrashed as error:
+                self._restart(f"{error}; restarting it and clearing the published mesh")
+                return
+            if update is not None:
+                self._apply(update)
+            if self._full_wanted:
+                self._full_wanted = False
+                if self._blocks:
+                    self._send(self._blocks, [], full=True)
+            if self.mesher.busy:
+                return
+            epoch, have = self.mesher.epoch, self.mesher.have()
+            # Version 0: nothing fitted yet (a still random map would only cost time to mesh).
+            due = (bool(map_version) and map_version != self._meshed_version
+                   and time.monotonic() - self._last_snapshot >= self.period)
+            if not due:
+                if self.mesher.pending:
+                    self._submit(None)
+                return
+        start = time.monotonic()
+        try:
+            # Outside the lock: the snapshot waits for the runtime (the mapper's answer, or the step in progress).
+            snapshot = take_snapshot(have)
+        except EmptyMeshError:
+            return  # nothing mapped yet
+        with self._lock:
+            if self.mesher.epoch != epoch or self.mesher.busy or self.mesher.have() != have:
+                return  # reset or restarted meanwhile: this snapshot may be of the old map, or lack depth images
+            self._meshed_version, self._last_snapshot = map_version, time.monotonic()
+            self.figures.snapshot_ms_last = 1000 * (time.monotonic() - start)
+            self._submit(snapshot)
+
+    def _submit(self, snapshot: Optional[MeshSnapshot]) -> None:
+        try:
+            self.mesher.submit(snapshot)
+        except MesherCrashed as error:
+            self._restart(f"{error}; restarting it and clearing the published mesh")
+
+    # ------------------------------------------------------------------------------------------ messages
+
+    def _apply(self, update: MeshUpdate) -> None:
+        f = self.figures
+        if update.error:
+            f.errors += 1
+            self.log.warning(f"meshing failed (the mesh starts over with the next snapshot): {update.error}",
+                             throttle_duration_sec=30.0)
+            self._meshed_version = None
+            return
+        if update.epoch != self.mesher.epoch:
+            return  # a job from before the last reset
+        f.blocks_meshed_last, f.blocks_pending = update.meshed, update.pending
+        f.job_ms_last, f.job_cpu_ms_last = 1000 * update.wall_s, 1000 * update.cpu_s
+        f.cpu_s_total += update.cpu_s
+        changed = {key: TriangleBlock(corners, colors) for key, (corners, colors) in update.changed.items()}
+        removed = [key for key in update.removed if key in self._blocks]
+        for key in removed:
+            del self._blocks[key]
+        self._blocks.update(changed)
+        f.blocks, f.triangles = update.blocks, update.triangles
+        if changed or removed:
+            self._send(changed, removed, full=False)
+
+    def _send(self, blocks: dict, removed: list, full: bool) -> None:
+        start = time.monotonic()
+        self._publish(serialize_block_markers(blocks, removed, self.frame_id, self._now(), NAMESPACE))
+        f = self.figures
+        f.publications += 1
+        f.full_publications += int(full)
+        f.blocks_sent_last, f.blocks_deleted_last = len(blocks), len(removed)
+        f.publish_ms_last = 1000 * (time.monotonic() - start)
+
+    def _restart(self, message: str) -> None:
+        """The mesh process died: a fresh one rebuilds every block, so subscribers drop theirs first."""
+        self.figures.errors += 1
+        self.log.error(message, throttle_duration_sec=30.0)
+        self.mesher.reset()
+        self._blocks.clear()
+        self._meshed_version, self._last_snapshot = None, -float("inf")
+        self.figures.blocks = self.figures.triangles = self.figures.blocks_pending = 0
+        self._publish(serialize_block_markers({}, [], self.frame_id, self._now(), NAMESPACE, delete_all=True))
+        self.figures.publications += 1
+
+    def status(self) -> dict[str, Any]:
+        """The figures for ~/status, named `mesh_<figure>` (and the older `meshes_published`, `mesh_triangles`)."""
+        with self._lock:
+            values = {f"mesh_{name}": value for name, value in vars(self.figures).items()}
+            values["mesh_busy"] = self.mesher.busy  # a job is running in the mesh process
+        values["meshes_published"] = values.pop("mesh_publications")
+        return values

@@ -1,0 +1,250 @@
+"""~/mesh as incremental block markers (mesh_markers.py, mesh_publication.py), through real DDS: a changed block is
+re-sent with the same id, an unchanged one is not, an emptied one is deleted, a late subscriber gets every block;
+and the node keeps publishing poses from a 30 Hz stream while its mesh is being built."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rclpy.event_handler import PublisherEventCallbacks
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import CameraInfo, Image
+from visualization_msgs.msg import Marker, MarkerArray
+
+from eslam_ros.conversions import camera_info_from_intrinsics, depth_to_image, rgb_to_image
+from eslam_ros.mesh_markers import TriangleBlock, block_marker_id, serialize_block_markers
+from eslam_ros.mesh_publication import MeshPublication
+from eslam_ros.qos import latched_qos
+from test_mesh_blocks import BALL, BLOCK, RES, SMALL, snapshot_of
+
+REPO = Path(__file__).resolve().parent.parent
+LATCHED = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def _domain() -> int:
+    return 1 + os.getpid() % 101
+
+
+@pytest.fixture
+def ros(monkeypatch):
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    rclpy.init(domain_id=_domain())
+    yield
+    rclpy.try_shutdown()
+
+
+class Viewer:
+    """What RViz does with MarkerArray messages: ADD replaces the marker of that (ns, id), DELETE removes it,
+    DELETEALL removes all."""
+
+    def __init__(self, node: Node, qos=LATCHED) -> None:
+        self.messages: list[MarkerArray] = []
+        self.markers: dict[int, Marker] = {}
+        node.create_subscription(MarkerArray, "/mesh_test", self._on_message, qos)
+
+    def _on_message(self, msg: MarkerArray) -> None:
+        self.messages.append(msg)
+        for marker in msg.markers:
+            if marker.action == Marker.DELETEALL:
+                self.markers.clear()
+            elif marker.action == Marker.DELETE:
+                self.markers.pop(marker.id, None)
+            else:
+                self.markers[marker.id] = marker
+
+
+def test_block_markers_decode_with_ids_from_block_coordinates():
+    rng = np.random.default_rng(0)
+    corners = rng.uniform(-1, 1, (9, 3))
+    colors = rng.uniform(0, 1, (9, 4)).astype(np.float32)
+    blocks = {(1, -1, 1): TriangleBlock(corners, colors), (-3, 0, 2): TriangleBlock(corners[:3], None)}
+    msg = deserialize_message(serialize_block_markers(blocks, [(0, 0, -1)], "map", 12.5, ns="m", delete_all=True),
+                              MarkerArray)
+    actions = [(m.action, m.id) for m in msg.markers]
+    assert actions == [(Marker.DELETEALL, 0), (Marker.DELETE, block_marker_id((0, 0, -1))),
+                       (Marker.ADD, block_marker_id((1, -1, 1))), (Marker.ADD, block_marker_id((-3, 0, 2)))]
+    added = msg.markers[2]
+    assert added.type == Marker.TRIANGLE_LIST and added.header.frame_id == "map" and added.ns == "m"
+    np.testing.assert_array_equal([[p.x, p.y, p.z] for p in added.points], corners)
+    np.testing.assert_allclose([[c.r, c.g, c.b, c.a] for c in added.colors], colors)
+    assert len(msg.markers[3].points) == 3 and not msg.markers[3].colors
+    # Ids: distinct for neighbouring and negative coordinates, stable, within int32.
+    keys = [(i, j, k) for i in range(-3, 4) for j in range(-3, 4) for k in range(-3, 4)]
+    ids = {block_marker_id(key) for key in keys}
+    assert len(ids) == len(keys) and all(0 <= i < 2**31 for i in ids)
+
+
+def test_only_changed_blocks_are_sent_and_a_late_subscriber_gets_them_all(ros):
+    pub_node, sub_node = Node("mesh_test_publisher"), Node("mesh_test_viewer")
+    executor = SingleThreadedExecutor()
+    executor.add_node(pub_node)
+    executor.add_node(sub_node)
+    publication: MeshPublication = None
+
+    def matched(status):
+        publication.subscriber_matched(status)
+
+    publisher = pub_node.create_publisher(MarkerArray, "/mesh_test", latched_qos(),
+                                          event_callbacks=PublisherEventCallbacks(matched=matched))
+    publication = MeshPublication(publisher.publish, "map", lambda: pub_node.get_clock().now().to_msg(),
+                                  pub_node.get_logger(), resolution=RES, block_size=BLOCK, period=0.0, budget_s=1e9,
+                                  triangle_budget=10**6)
+    viewer = Viewer(sub_node)
+
+    def spin_until(condition, timeout=60.0):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.02)
+            if condition():
+                return True
+        return False
+
+    def publish_map(version, balls) -> MarkerArray:
+        """One snapshot of the map, stepped until its update is published; the message it caused."""
+        count = len(viewer.messages)
+        publication.step(version, lambda have: snapshot_of(balls, have))
+        assert spin_until(lambda: publication.step(version, lambda have: None) or len(viewer.messages) > count), \
+            publication.status()
+        assert not publication.mesher.busy and len(viewer.messages) == count + 1
+        return viewer.messages[-1]
+
+    try:
+        assert spin_until(lambda: publisher.get_subscription_count() == 1)
+        first = publish_map(1, [BALL, SMALL])
+        assert {m.action for m in first.markers} == {Marker.ADD} and len(first.markers) >= 6
+        assert {m.id for m in first.markers} == set(viewer.markers)
+        small_id = block_marker_id((1, -1, 1))
+        assert small_id in viewer.markers
+        before = {i: len(m.points) for i, m in viewer.markers.items()}
+
+        # The small ball grows: its block alone is re-sent, with its id; every other block is not.
+        grown = publish_map(2, [BALL, (SMALL[0], SMALL[1], SMALL[2], SMALL[3] + 0.03)])
+        assert [(m.action, m.id) for m in grown.markers] == [(Marker.ADD, small_id)]
+        assert len(viewer.markers[small_id].points) > before[small_id]
+
+        # It vanishes: its block is deleted (a DELETE with the same id), nothing else is sent, no DELETEALL.
+        gone = publish_map(3, [BALL])
+        assert [(m.action, m.id) for m in gone.markers] == [(Marker.DELETE, small_id)]
+        assert set(viewer.markers) == set(before) - {small_id}
+
+        # A subscriber that comes now gets every block in one message (after the last delta, its history).
+        late = Viewer(sub_node)
+        assert spin_until(lambda: (publication.step(3, lambda have: None) or True) and late.messages
+                          and late.markers.keys() == viewer.markers.keys())
+        assert publication.status()["mesh_full_publications"] == 1
+        assert all(len(late.markers[i].points) == len(viewer.markers[i].points) for i in viewer.markers)
+
+        # A reset: one DELETEALL, and every viewer is empty.
+        publication.reset()
+        assert spin_until(lambda: not viewer.markers and not late.markers)
+        assert [m.action for m in viewer.messages[-1].markers] == [Marker.DELETEALL]
+        status = publication.status()
+        assert status["meshes_published"] == 5 and status["mesh_blocks"] == 0 and status["mesh_job_cpu_ms_last"] > 0
+    finally:
+        publication.close()
+        pub_node.destroy_node()
+        sub_node.destroy_node()
+
+
+# ------------------------------------------------------------------------------------------------ the node
+
+
+def _ros_env(domain: int) -> dict:
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]), PYTHONUNBUFFERED="1")
+    env.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
+    return env
+
+
+def test_node_keeps_publishing_poses_from_a_30_hz_stream_while_its_mesh_is_built(room_sequence, ros, tmp_path):
+    """A fine mesh (1 cm voxels, jobs of up to 3 s) is built while 3 s of a 30 Hz camera stream arrive: poses keep
+    coming at the tracker's pace, without a gap, during the mesh jobs."""
+    params = {"workers": 2, "policy": "live", "input_qos": "reliable", "preset": "fast", "save_on_shutdown": False,
+              "mesh_period": 0.2, "mesh_resolution": 0.01, "mesh_time_budget": 3.0, "status_period": 0.1,
+              "output_dir": str(tmp_path / "out"), "eslam.mapping.first_iterations": 60}
+    command = [sys.executable, "-m", "eslam_ros.slam_node", "--ros-args"]
+    for name, value in params.items():
+        command += ["-p", f"{name}:={value}"]
+    for name, topic in (("rgb/image", "/cam/rgb"), ("depth/image", "/cam/depth"), ("rgb/camera_info", "/cam/info")):
+        command += ["-r", f"{name}:={topic}"]
+    log_path = tmp_path / "node.log"
+    with open(log_path, "w") as log:
+        process = subprocess.Popen(command, env=_ros_env(_domain()), cwd=REPO, stdout=log, stderr=subprocess.STDOUT,
+                                   start_new_session=True)
+    node = Node("stream_test")
+    poses, status = [], []
+    node.create_subscription(PoseStamped, "/slam_node/pose", lambda m: poses.append(time.monotonic()), 100)
+    node.create_subscription(DiagnosticArray, "/slam_node/status", lambda m: status.append(
+        (time.monotonic(), {kv.key: kv.value for kv in m.status[0].values})), 100)
+    reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    rgb_pub, depth_pub = node.create_publisher(Image, "/cam/rgb", reliable), node.create_publisher(Image, "/cam/depth",
+                                                                                                    reliable)
+    info_pub = node.create_publisher(CameraInfo, "/cam/info", reliable)
+
+    def spin_for(seconds: float, until=lambda: False) -> bool:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.005)
+            assert process.poll() is None, "the node died: " + log_path.read_text()[-3000:]
+            if until():
+                return True
+        return False
+
+    # Forwards, backwards, forwards: a smooth 90-frame camera path out of the 30 frames, stamps at 30 Hz.
+    order = list(range(30)) + list(range(28, -1, -1)) + list(range(1, 30))
+    frames = [room_sequence[i] for i in range(30)]
+
+    def send(k: int) -> None:
+        frame, stamp = frames[order[k]], 100.0 + k / 30.0
+        info_pub.publish(camera_info_from_intrinsics(room_sequence.intrinsics, stamp, "cam"))
+        rgb_pub.publish(rgb_to_image(frame.rgb, stamp, "cam"))
+        depth_pub.publish(depth_to_image(frame.depth, stamp, "cam"))
+
+    try:
+        assert spin_for(60.0, lambda: rgb_pub.get_subscription_count() and depth_pub.get_subscription_count()
+                        and info_pub.get_subscription_count())
+        # The first frame starts the runtime and the map, the second is tracked once the first map is fitted.
+        send(0)
+        spin_for(1 / 30)
+        send(1)
+        assert spin_for(120.0, lambda: len(poses) == 2), log_path.read_text()[-3000:]
+        # Then the mesh of that map is being built: stream the rest of the frames meanwhile.
+        assert spin_for(60.0, lambda: status and status[-1][1].get("mesh_busy") == "True"), log_path.read_text()[-3000:]
+        start = time.monotonic()
+        for k in range(2, len(order)):
+            send(k)
+            spin_for(start + (k - 1) / 30.0 - time.monotonic())
+        end = time.monotonic()
+        # Once the stream is over the mesh process gets the CPU, and the mesh arrives.
+        spin_for(120.0, lambda: status and int(status[-1][1].get("meshes_published", 0)) >= 1)
+    finally:
+        process.send_signal(signal.SIGINT)
+        try:
+            process.wait(60)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+        node.destroy_node()
+
+    streamed = [t for t in poses if start <= t <= end]
+    busy = [t for t, values in status if start <= t <= end and values.get("mesh_busy") == "True"]
+    final = status[-1][1]
+    log = log_path.read_text()[-3000:]
+    # A mesh was being built for most of the stream (status every 0.1 s), and it was published once the CPU was
+    # free again ...
+    assert len(busy) >= 0.5 * (end - start) / 0.1 and int(final["meshes_published"]) >= 1, (len(busy), final, log)
+    # ... while poses kept coming, never a second without one (a mesh job lasts seconds: a node that waited for it
+    # would stall that long).
+    gaps = np.diff([start] + streamed + [end])
+    assert len(streamed) >= 10 and gaps.max() < 1.0, (len(streamed), gaps.max(), log)
