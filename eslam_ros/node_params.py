@@ -35,6 +35,8 @@ _BOX_KEYS = ("scene.bound",)
 
 QOS_CHOICES = ("sensor_data", "reliable")
 POLICY_CHOICES = ("live", "offline")
+ODOM_SOURCES = ("auto", "topic", "tf")
+POSE_FRAMES = ("camera", "base")
 
 
 class NodeParameterError(ValueError):
@@ -100,6 +102,39 @@ class NodeSettings:
                                                             "looped); 0 = never reset, skip such frames")
     save_on_shutdown: bool = _param(True, "save_on_shutdown", "save trajectory, mesh and checkpoint to output_dir "
                                                               "on Ctrl-C / SIGTERM")
+    start_queue_bytes: int = _param(512 * 2**20, "start_queue_bytes", "offline policy: bytes of frames kept while "
+                                                                      "the SLAM runtime starts (frames beyond are "
+                                                                      "dropped and counted); the live policy keeps "
+                                                                      "the newest 30")
+    # ---- the robot's TF tree (REP 105) and external odometry
+    odom_frame: str = _param("", "odom_frame", "the robot's odometry frame (e.g. odom); with base_frame set the node "
+                                               "publishes map_frame -> odom_frame (REP 105) instead of map_frame -> "
+                                               "camera, and takes the odometry as its motion prior")
+    base_frame: str = _param("", "base_frame", "the robot's base frame (e.g. base_link), the child of odom_frame in "
+                                               "the odometry")
+    odom_source: str = _param("auto", "odom_source", "where odom_frame -> base_frame comes from: tf, topic (a "
+                                                     "nav_msgs/Odometry on `odom`), or auto (tf when tf2_ros is "
+                                                     "installed, else topic)")
+    base_to_camera: tuple = _param((), "base_to_camera", "[x, y, z, qx, qy, qz, qw]: pose of the camera's optical "
+                                                         "frame (the image frame_id) in base_frame; empty = from TF")
+    pose_frame: str = _param("camera", "pose_frame", "whose pose ~/pose, ~/odom and ~/path give: camera (the image "
+                                                     "frame_id) or base (base_frame)")
+    odom_wait: float = _param(0.1, "odom.wait", "seconds a frame waits for the odometry at its stamp before it goes "
+                                                "on without (counted in odom_missing)")
+    odom_max_gap: float = _param(0.5, "odom.max_gap", "seconds between two odometry samples beyond which a frame "
+                                                      "between them gets no odometry (counted in odom_gaps)")
+    odom_max_speed: float = _param(5.0, "odom.max_speed", "m/s; odometry moving faster between two frames is a jump "
+                                                          "(counted in odom_jumps; SLAM gets it without the jump)")
+    odom_max_angular_speed: float = _param(6.0, "odom.max_angular_speed", "rad/s; odometry turning faster between "
+                                                                          "two frames is a jump")
+    # ---- diagnostics (~/status and /diagnostics)
+    diagnostics_hardware_id: str = _param("eslam", "diagnostics.hardware_id", "hardware_id of the node's "
+                                                                              "DiagnosticStatus")
+    no_input_timeout: float = _param(5.0, "diagnostics.no_input_timeout", "seconds without an rgb-depth pair (or, "
+                                                                          "with odom_source topic, odometry) before "
+                                                                          "the status warns; 0 = never")
+    min_input_rate: float = _param(0.0, "diagnostics.min_input_rate", "Hz; a lower rate of rgb-depth pairs (over "
+                                                                      "the last 5 s) warns; 0 = never")
 
     def validate(self) -> "NodeSettings":
         def check(ok: bool, attribute: str, message: str) -> None:
@@ -130,7 +165,31 @@ class NodeSettings:
         check(math.isfinite(self.mesh_time_budget) and self.mesh_time_budget > 0, "mesh_time_budget",
               "must be a positive number of seconds")
         check(0 <= self.mesh_nice <= 19, "mesh_nice", "must be a nice value from 0 to 19")
+        check(self.start_queue_bytes >= 0, "start_queue_bytes", "must be >= 0")
+        check(bool(self.odom_frame.strip()) == bool(self.base_frame.strip()),
+              "odom_frame" if not self.odom_frame.strip() else "base_frame",
+              "odom_frame and base_frame are set together (both empty: publish map_frame -> camera)")
+        frames = [f for f in (self.map_frame, self.odom_frame, self.base_frame) if f]
+        check(len(set(frames)) == len(frames), "odom_frame", "map_frame, odom_frame and base_frame must differ")
+        check(self.odom_source in ODOM_SOURCES, "odom_source", f"must be one of {', '.join(ODOM_SOURCES)}")
+        check(len(self.base_to_camera) in (0, 7) and all(math.isfinite(v) for v in self.base_to_camera)
+              and (not self.base_to_camera or math.hypot(*self.base_to_camera[3:]) > 1e-6), "base_to_camera",
+              "must be empty (from TF) or 7 numbers [x, y, z, qx, qy, qz, qw] with a non-zero quaternion")
+        check(self.pose_frame in POSE_FRAMES, "pose_frame", f"must be one of {', '.join(POSE_FRAMES)}")
+        check(self.pose_frame == "camera" or bool(self.base_frame), "pose_frame",
+              "'base' needs base_frame (and odom_frame) to be set")
+        for attribute in ("odom_wait", "no_input_timeout", "min_input_rate"):
+            value = getattr(self, attribute)
+            check(math.isfinite(value) and value >= 0, attribute, "must be a number >= 0")
+        for attribute in ("odom_max_gap", "odom_max_speed", "odom_max_angular_speed"):
+            value = getattr(self, attribute)
+            check(math.isfinite(value) and value > 0, attribute, "must be a positive number")
         return self
+
+    @property
+    def rep105(self) -> bool:
+        """odom_frame and base_frame are set: publish map -> odom and use the odometry."""
+        return bool(self.odom_frame)
 
 
 _FIELD_TO_PARAM = {f.name: f.metadata["param"] for f in dataclasses.fields(NodeSettings)}
@@ -138,7 +197,9 @@ _FIELD_TO_PARAM = {f.name: f.metadata["param"] for f in dataclasses.fields(NodeS
 
 def node_parameter_defaults() -> dict[str, tuple[Any, str]]:
     """{ROS parameter name: (default value, description)} of every node setting."""
-    return {f.metadata["param"]: (f.default, f.metadata["doc"]) for f in dataclasses.fields(NodeSettings)}
+    # tuples are ROS arrays, declared as lists
+    return {f.metadata["param"]: (list(f.default) if isinstance(f.default, tuple) else f.default, f.metadata["doc"])
+            for f in dataclasses.fields(NodeSettings)}
 
 
 def settings_from_parameters(values: Mapping[str, Any]) -> NodeSettings:
@@ -159,6 +220,14 @@ def settings_from_parameters(values: Mapping[str, Any]) -> NodeSettings:
 def _typed(value: Any, expected: type, name: str) -> Any:
     if expected is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
+    if expected is tuple:  # an array of numbers
+        if isinstance(value, (list, tuple)) and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                    for v in value):
+            return tuple(float(v) for v in value)
+        raise NodeParameterError(
+            f"ROS parameter '{name}' must be a list of numbers, got {value!r}; write it as [0.1, 0.0, ...] (floats "
+            f"with a decimal point) in the parameter file or the -p {name}:=... argument"
+        )
     if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
         raise NodeParameterError(
             f"ROS parameter '{name}' must be of type {expected.__name__}, got {value!r} "
@@ -243,6 +312,15 @@ def unknown_parameter_error(name: str, cfg: Config) -> NodeParameterError:
     hint = f"known keys of {section[:-1]}: {', '.join(siblings)}" if siblings else (
         "sections: " + ", ".join(sorted({k.split('.')[1] for k in config_parameters(cfg)})))
     return NodeParameterError(f"unknown ESLAM parameter '{name}' ({hint}); fix the parameter file")
+
+
+def check_odometry_mode(settings: NodeSettings, cfg: Config) -> None:
+    """tracking.mode 'external' takes every pose from the odometry, so the node needs one."""
+    if cfg.tracking.mode == "external" and not settings.rep105:
+        raise NodeParameterError(
+            "eslam.tracking.mode 'external' takes the poses from the robot's odometry: set odom_frame and base_frame "
+            "(and odom_source / base_to_camera), or use eslam.tracking.mode:=track"
+        )
 
 
 def resolve_config(settings: NodeSettings, overrides: Mapping[str, ParamValue]) -> Config:
