@@ -17,6 +17,8 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/eslam_ros"]),
         ("share/eslam_ros", ["package.xml"]),
         ("share/eslam_ros/config", glob("config/*")),
+        ("share/eslam_ros/launch", glob("launch/*.launch.py")),
+        ("share/eslam_ros/rviz", glob("rviz/*.rviz")),
     ],
     install_requires=[
         "torch==2.13.0",
@@ -38,5 +40,6 @@ setup(
         "test": ["pytest"],
     },
     # `slam_node` serves both installs: pip puts it on PATH, colcon (setup.cfg) in lib/eslam_ros for `ros2 run`.
-    entry_points={"console_scripts": ["eslam = eslam_core.cli:main", "slam_node = eslam_ros.slam_node:main"]},
+    entry_points={"console_scripts": ["eslam = eslam_core.cli:main", "slam_node = eslam_ros.slam_node:main",
+                                      "slam_lifecycle_node = eslam_ros.lifecycle_node:main"]},
 )

@@ -26,6 +26,7 @@ pip install, `slam_node --ros-args ...` (see docs/ros.md).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import signal
 import sys
@@ -40,11 +41,12 @@ from typing import Any, Callable, Optional, Sequence, Union
 
 import numpy as np
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TransformStamped, Vector3
 from nav_msgs.msg import Odometry, Path as PathMsg
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
@@ -52,7 +54,7 @@ from rclpy.signals import SignalHandlerOptions
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import MarkerArray
+from visualization_msgs.msg import Marker, MarkerArray
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config, ConfigError
@@ -78,6 +80,7 @@ from eslam_ros.node_params import (
     config_from_parameters,
     config_parameters,
     base_config,
+    check_odometry_mode,
     node_parameter_defaults,
     settings_from_parameters,
     unknown_eslam_parameters,
@@ -86,16 +89,14 @@ from eslam_ros.node_params import (
 from eslam_ros.qos import input_qos, latched_qos, output_qos, use_shipped_fastdds_profile
 from eslam_ros.sync import ApproximateTimeSynchronizer
 
-try:  # TF needs tf2_msgs, which only a real ROS installation provides
-    from tf2_ros import TransformBroadcaster
-except ImportError:
-    TransformBroadcaster = None
+from eslam_ros.diagnostics import InputMonitor, StatusInputs, diagnostic_array, status_level, status_marker
+from eslam_ros.robot_odometry import FrameOdometry, RobotOdometry, frame_with_odometry
+from eslam_ros.start_queue import StartQueue, frame_bytes
+from eslam_ros.tf_chain import TfOdometry, TfOutput, base_in_map, map_to_odom, select_setup, transform_stamped
 
 RGB, DEPTH = 0, 1  # stream indices in the synchronizer
 STREAM_NAMES = ("rgb/image", "depth/image")
 EXIT_OK, EXIT_FAILED, EXIT_BAD_PARAMETERS, EXIT_INTERRUPTED = 0, 1, 2, 130
-# Frames kept while the runtime starts (seconds, when it spawns workers); older ones are dropped and counted.
-MAX_HELD_FRAMES = 30
 # At shutdown with the live policy: how long the frame in progress may take before the runtime is stopped.
 LIVE_DRAIN_TIMEOUT_S = 10.0
 
@@ -344,16 +345,6 @@ def odometry(pose: np.ndarray, twist: tuple[np.ndarray, np.ndarray], stamp: Any,
     return msg
 
 
-def transform(pose: np.ndarray, stamp: Any, frame_id: str, child_frame_id: str) -> TransformStamped:
-    p = pose_to_msg(pose)
-    msg = TransformStamped(child_frame_id=child_frame_id)
-    msg.header.stamp = stamp
-    msg.header.frame_id = frame_id
-    msg.transform.translation = Vector3(x=p.position.x, y=p.position.y, z=p.position.z)
-    msg.transform.rotation = p.orientation
-    return msg
-
-
 def path_message(timestamps: np.ndarray, poses: np.ndarray, frame_id: str) -> PathMsg:
     msg = PathMsg()
     msg.header.frame_id = frame_id
@@ -361,20 +352,6 @@ def path_message(timestamps: np.ndarray, poses: np.ndarray, frame_id: str) -> Pa
     if len(msg.poses):
         msg.header.stamp = msg.poses[-1].header.stamp
     return msg
-
-
-def diagnostics(name: str, level: bytes, summary: str, values: dict[str, Any], stamp: Any) -> DiagnosticArray:
-    status = DiagnosticStatus(level=level, name=name, message=summary, hardware_id="eslam")
-    status.values = [KeyValue(key=key, value=_diagnostic_value(value)) for key, value in values.items()]
-    msg = DiagnosticArray(status=[status])
-    msg.header.stamp = stamp
-    return msg
-
-
-def _diagnostic_value(value: Any) -> str:
-    if isinstance(value, float):
-        return "nan" if math.isnan(value) else f"{value:.6g}"
-    return str(value)
 
 
 # ================================================================================================= the node
@@ -470,8 +447,18 @@ class SlamNode(Node):
 
     def __init__(self, node_name: str = "slam_node", **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
+        self.configure_slam()
+        self.activate_slam()
+
+    # The plain node runs configure + activate in its constructor; the lifecycle node (eslam_ros.lifecycle_node)
+    # runs them as transitions. Inputs and periodic outputs belong to "active"; publishers, services and the map
+    # live from configure to cleanup.
+
+    def configure_slam(self) -> None:
+        """Read the parameters, make the input pipeline, the publishers and the services (no input yet)."""
         self.settings, self.config = self._declare_parameters()
         s = self.settings
+        self.tf_setup = select_setup(s)
         self.output_dir = Path(s.output_dir).expanduser()
         self.pipeline = InputPipeline(
             queue_size=s.sync_queue_size,
@@ -483,19 +470,26 @@ class SlamNode(Node):
         )
         # The runtime needs the camera, so it starts with the first accepted frame, on a thread of its own (spawning
         # workers takes seconds, and the input callbacks must keep taking messages meanwhile). Frames accepted while
-        # it starts wait in `_held` (the newest MAX_HELD_FRAMES of them).
+        # it starts wait in `_held` (offline: all of them, up to start_queue_bytes; live: the newest 30).
         self.runtime = None
         self._starter: Optional[threading.Thread] = None
-        self._held: deque[AcceptedFrame] = deque()
+        self._held: StartQueue[AcceptedFrame] = StartQueue(s.policy, s.start_queue_bytes)
         self.failed: Optional[str] = None  # set when the runtime crashed: the node then stops with an error
+        self.active = False
         self.outputs = _Outputs()
         self._throttle = LogThrottle(s.log_throttle)
+        self.inputs = InputMonitor()
         # Pose bookkeeping, shared by the input thread and the services' thread (reset).
         self._lock = threading.Lock()
         self._submitted: dict[int, _Submitted] = {}
+        self._frame_odometry: dict[int, FrameOdometry] = {}  # REP 105 mode: per submitted frame, until its pose
+        self._map_started = False  # REP 105 mode: the first frame of a map is seeded with its odometry pose
+        self._camera_frame = ""  # the image frame_id (the camera optical frame), once known
         self._previous_pose: Optional[tuple[np.ndarray, float]] = None
+        self._last_position = np.zeros(3)  # of the camera in map_frame, where the status text floats
         self._last_image = time.monotonic()
         self._skipped_at_last_status = 0
+        self._odometry_problems_at_last_status: dict[str, int] = {}
         self._poses_at_last_status = (0, time.monotonic())
 
         # Inputs, poses, path and status on one thread (in order); slow work (mesh, services) on another.
@@ -503,14 +497,6 @@ class SlamNode(Node):
         self._slow = MutuallyExclusiveCallbackGroup()
         self.gate = CallbackGate(on_error=self._on_callback_error)
         gate = self.gate.wrap
-        qos_in = input_qos(s.input_qos, s.input_queue_depth)
-        self.create_subscription(Image, "rgb/image", gate(lambda m: self._on_image(RGB, m)), qos_in,
-                                 callback_group=self._io)
-        self.create_subscription(Image, "depth/image", gate(lambda m: self._on_image(DEPTH, m)), qos_in,
-                                 callback_group=self._io)
-        self.create_subscription(CameraInfo, "rgb/camera_info", gate(self._on_camera_info), qos_in,
-                                 callback_group=self._io)
-
         self.pose_pub = self.create_publisher(PoseStamped, "~/pose", output_qos())
         self.odom_pub = self.create_publisher(Odometry, "~/odom", output_qos())
         self.path_pub = self.create_publisher(PathMsg, "~/path", output_qos(1))
@@ -523,33 +509,99 @@ class SlamNode(Node):
         self.mesh_pub = self.create_publisher(MarkerArray, "~/mesh", latched_qos(), event_callbacks=(
             PublisherEventCallbacks(matched=self.mesh.subscriber_matched)))
         self.status_pub = self.create_publisher(DiagnosticArray, "~/status", output_qos())
-        self.tf_broadcaster = TransformBroadcaster(self) if (s.publish_tf and TransformBroadcaster) else None
+        # The same status where diagnostic_aggregator and rqt_robot_monitor look.
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", output_qos())
+        self.status_marker_pub = self.create_publisher(Marker, "~/status_marker", output_qos(1))
+        self.tf_output = TfOutput(self, self.tf_setup.tf_output)
+        self.map_to_odom_pub = (self.create_publisher(TransformStamped, "~/map_to_odom", output_qos())
+                                if self.tf_setup.rep105 else None)
+        tf_odometry = TfOdometry(self, s.odom_frame, s.base_frame) if "tf" in (
+            self.tf_setup.odometry, self.tf_setup.extrinsic) else None
+        self.odometry: Optional[RobotOdometry[AcceptedFrame]] = RobotOdometry(
+            s, self.tf_setup, tf_odometry) if self.tf_setup.rep105 else None
 
-        self.create_timer(0.01, gate(self._publish_poses), callback_group=self._io)
-        self.create_timer(s.path_period, gate(self._publish_path), callback_group=self._io)
-        self.create_timer(s.status_period, gate(self._publish_status), callback_group=self._io)
-        if s.sync_idle_flush > 0:
-            self.create_timer(min(0.1, s.sync_idle_flush), gate(self._flush_if_idle), callback_group=self._io)
-        if s.mesh_period > 0:
-            self.create_timer(min(MESH_POLL_S, s.mesh_period), gate(self._publish_mesh), callback_group=self._slow)
+        self._configured_entities: list = [self.create_timer(s.status_period, gate(self._publish_status),
+                                                             callback_group=self._io)]
         for name, handler in (("~/save_mesh", self._srv_save_mesh), ("~/save_trajectory", self._srv_save_trajectory),
                               ("~/save_checkpoint", self._srv_save_checkpoint), ("~/reset", self._srv_reset)):
-            self.create_service(Trigger, name, gate(handler, when_closed=_refused), callback_group=self._slow)
+            self._configured_entities.append(
+                self.create_service(Trigger, name, gate(handler, when_closed=_refused), callback_group=self._slow))
+        self._active_entities: list = []
 
-        self.add_on_set_parameters_callback(self._refuse_parameter_changes)
+        if not getattr(self, "_refusing_parameter_changes", False):
+            self.add_on_set_parameters_callback(self._refuse_parameter_changes)
+            self._refusing_parameter_changes = True
+        self.get_logger().info(f"TF: {self.tf_setup.describe(s)}")
         self.get_logger().info(
             f"ESLAM node ready: {'config file ' + s.config_file if s.config_file else 'preset ' + s.preset}, "
-            f"{s.workers} worker(s), {s.policy} policy, input QoS {s.input_qos}, poses in '{s.map_frame}', "
-            f"outputs to {self.output_dir.resolve()}; waiting for rgb/image, depth/image and rgb/camera_info"
+            f"{s.workers} worker(s), {s.policy} policy, tracking mode {self.config.tracking.mode}, input QoS "
+            f"{s.input_qos}, poses in '{s.map_frame}', outputs to {self.output_dir.resolve()}; waiting for "
+            f"rgb/image, depth/image and rgb/camera_info" + (" and odom" if self.tf_setup.odometry == "topic" else "")
         )
+
+    def activate_slam(self) -> None:
+        """Subscribe to the inputs and start the periodic outputs (the runtime starts with the first frame)."""
+        s, gate = self.settings, self.gate.wrap
+        qos_in = input_qos(s.input_qos, s.input_queue_depth)
+        self.inputs = InputMonitor()
+        self._subscriptions_in = [
+            self.create_subscription(Image, "rgb/image", gate(lambda m: self._on_image(RGB, m)), qos_in,
+                                     callback_group=self._io),
+            self.create_subscription(Image, "depth/image", gate(lambda m: self._on_image(DEPTH, m)), qos_in,
+                                     callback_group=self._io),
+            self.create_subscription(CameraInfo, "rgb/camera_info", gate(self._on_camera_info), qos_in,
+                                     callback_group=self._io),
+        ]
+        if self.tf_setup.odometry == "topic":
+            self._subscriptions_in.append(self.create_subscription(
+                Odometry, "odom", gate(self._on_odometry), input_qos(s.input_qos, max(s.input_queue_depth, 100)),
+                callback_group=self._io))
+        timers = [self.create_timer(0.01, gate(self._publish_poses), callback_group=self._io),
+                  self.create_timer(s.path_period, gate(self._publish_path), callback_group=self._io)]
+        if self.odometry is not None:
+            timers.append(self.create_timer(0.02, gate(self._release_odometry), callback_group=self._io))
+        if s.sync_idle_flush > 0:
+            timers.append(self.create_timer(min(0.1, s.sync_idle_flush), gate(self._flush_if_idle),
+                                            callback_group=self._io))
+        if s.mesh_period > 0:
+            timers.append(self.create_timer(min(MESH_POLL_S, s.mesh_period), gate(self._publish_mesh),
+                                            callback_group=self._slow))
+        self._active_entities = self._subscriptions_in + timers
+        self.active = True
+
+    def deactivate_slam(self) -> None:
+        """Stop taking input and publishing periodically; the runtime and its map stay (tracking and mapping pause
+        once the frames already submitted are done, at most LIVE_DRAIN_TIMEOUT_S)."""
+        self.active = False
+        for entity in self._active_entities:
+            self._destroy(entity)
+        self._active_entities = []
+        if self.runtime is not None and not self.failed:
+            self._drain(LIVE_DRAIN_TIMEOUT_S)
+
+    def destroy_slam_entities(self) -> None:
+        """Cleanup: every publisher, service and timer the node made (after `finish`)."""
+        if self.active:
+            self.deactivate_slam()
+        for entity in self._configured_entities + [self.pose_pub, self.odom_pub, self.path_pub, self.mesh_pub,
+                                                   self.status_pub, self.diagnostics_pub, self.status_marker_pub,
+                                                   self.map_to_odom_pub]:
+            if entity is not None:
+                self._destroy(entity)
+        self._configured_entities = []
+
+    def _destroy(self, entity: Any) -> None:
+        kind = type(entity).__name__
+        destroy = {"Subscription": self.destroy_subscription, "Timer": self.destroy_timer,
+                   "Service": self.destroy_service}.get(kind, self.destroy_publisher)
+        destroy(entity)
 
     # ------------------------------------------------------------------------------------------ parameters
 
     def _declare_parameters(self) -> tuple[NodeSettings, Config]:
         """Declare every node and ESLAM parameter (so `ros2 param list` shows them) and read them back."""
         dynamic = dict(dynamic_typing=True)  # types are checked by settings_from_parameters / the config
-        for name, (default, doc) in node_parameter_defaults().items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=doc, **dynamic))
+        self.declare_node_parameters()
         settings = settings_from_parameters(
             {name: self.get_parameter(name).value for name in node_parameter_defaults()})
 
@@ -561,14 +613,28 @@ class SlamNode(Node):
             raise unknown_parameter_error(unknown[0], base)
         defaults = config_parameters(base)
         for name, default in defaults.items():
-            self.declare_parameter(name, default, ParameterDescriptor(
-                description=f"ESLAM setting {name[len(ESLAM_PREFIX):]} (see eslam_core.config)", **dynamic))
+            if not self.has_parameter(name):
+                self.declare_parameter(name, default, ParameterDescriptor(
+                    description=f"ESLAM setting {name[len(ESLAM_PREFIX):]} (see eslam_core.config)", **dynamic))
         origin = f"config file {settings.config_file}" if settings.config_file else f"preset '{settings.preset}'"
         config = config_from_parameters({name: self.get_parameter(name).value for name in defaults},
                                         f"ROS parameters eslam.* over {origin}")
+        check_odometry_mode(settings, config)
         return settings, config
 
+    def declare_node_parameters(self) -> None:
+        """The node settings (not the eslam.* ones, whose defaults depend on the preset); declared once, so a
+        lifecycle node configured again keeps them."""
+        for name, (default, doc) in node_parameter_defaults().items():
+            if not self.has_parameter(name):
+                self.declare_parameter(name, default, ParameterDescriptor(description=doc, dynamic_typing=True))
+
+    # A lifecycle node takes parameter changes while unconfigured (they are read at the next configure).
+    parameters_open = False
+
     def _refuse_parameter_changes(self, parameters: list) -> SetParametersResult:
+        if self.parameters_open:
+            return SetParametersResult(successful=True)
         names = ", ".join(p.name for p in parameters)
         return SetParametersResult(successful=False, reason=(
             f"{names}: parameters are read at start-up only; restart the node with the new value"))
@@ -580,7 +646,48 @@ class SlamNode(Node):
 
     def _on_image(self, stream: int, msg: Image) -> None:
         self._last_image = time.monotonic()
+        self.inputs.arrived(STREAM_NAMES[stream], self._last_image)
         self._handle(self.pipeline.add_image(stream, msg, self._last_image))
+
+    def _on_odometry(self, msg: Odometry) -> None:
+        self.inputs.arrived("odom")
+        refused = self.odometry.add_message(msg)
+        if refused and self._throttle.allow("odom_rejected"):
+            self.get_logger().warning(f"{refused} [odom_rejected: {self.odometry.counts['odom_rejected']} so far]")
+        self._release_odometry()
+
+    def _accept(self, accepted: AcceptedFrame) -> None:
+        """A frame from the pipeline: to the runtime, in REP 105 mode once its odometry is settled."""
+        self.inputs.arrived("pair")
+        self._camera_frame = accepted.frame_id
+        if self.odometry is None:
+            self._submit(accepted)
+            return
+        self.odometry.push(accepted.frame.timestamp, accepted.frame_id, accepted, time.monotonic())
+        self._release_odometry()
+
+    def _release_odometry(self, flush: bool = False) -> None:
+        for accepted, odometry in self.odometry.release(time.monotonic(), flush):
+            frame = self._with_odometry(accepted, odometry)
+            if frame is not None:
+                self._submit(frame)
+
+    def _with_odometry(self, accepted: AcceptedFrame, odometry: FrameOdometry) -> Optional[AcceptedFrame]:
+        if odometry.problem is not None or odometry.jumped:
+            key = odometry.problem.value if odometry.problem is not None else "jump"
+            if self._throttle.allow(f"odom_{key}"):
+                self.get_logger().warning(f"frame at {accepted.frame.timestamp:.3f}: {odometry.message} "
+                                          f"[{self.odometry.counts}]")
+        frame = frame_with_odometry(accepted.frame, odometry, self._map_started,
+                                    self.config.tracking.mode == "external")
+        if frame is None:
+            self.odometry.counts["odom_frames_skipped"] += 1
+            return None
+        if odometry.problem is None:
+            self._map_started = True
+            with self._lock:
+                self._frame_odometry[accepted.frame.index] = odometry
+        return dataclasses.replace(accepted, frame=frame)
 
     def _flush_if_idle(self) -> None:
         """No image for a while: the stream ended (or paused), so the pending pair will not get a better match."""
@@ -590,7 +697,7 @@ class SlamNode(Node):
     def _handle(self, events: Sequence[PipelineEvent]) -> None:
         for event in events:
             if isinstance(event, AcceptedFrame):
-                self._submit(event)
+                self._accept(event)
             elif isinstance(event, SkippedInput):
                 if self._throttle.allow(event.reason.value):
                     self.get_logger().warning(f"{event.message} [{event.reason.value}: "
@@ -622,10 +729,14 @@ class SlamNode(Node):
                 self._starter = threading.Thread(target=self._start_runtime, args=(accepted.intrinsics,),
                                                  name="eslam-runtime-start", daemon=True)
                 self._starter.start()
-            self._held.append(accepted)
-            if len(self._held) > MAX_HELD_FRAMES:
-                self._held.popleft()
-                self.outputs.dropped_while_starting += 1
+            dropped = self._held.push(accepted, frame_bytes(accepted.frame))
+            if dropped:
+                self.outputs.dropped_while_starting += dropped
+                if self._throttle.allow("dropped_while_starting"):
+                    self.get_logger().warning(
+                        f"{self.outputs.dropped_while_starting} frame(s) dropped while the SLAM runtime starts: "
+                        + (f"more than start_queue_bytes = {self.settings.start_queue_bytes} bytes queued; raise it"
+                           if self.settings.policy == "offline" else "the live policy keeps the newest 30"))
             return
         self._submit_held()
         self._submit_now(accepted)
@@ -659,20 +770,29 @@ class SlamNode(Node):
     def _publish_pose(self, update: Any) -> None:
         with self._lock:
             submitted = self._submitted.pop(update.index, None)
+            frame_odometry = self._frame_odometry.pop(update.index, None)
             # Frames before this one that got no pose were dropped by the live policy: forget them.
             for index in [i for i in self._submitted if i < update.index]:
                 del self._submitted[index]
+            for index in [i for i in self._frame_odometry if i < update.index]:
+                del self._frame_odometry[index]
             previous = self._previous_pose
             self._previous_pose = (update.pose, update.timestamp)
         if submitted is None:  # a frame from before a reset
             return
         stamp, map_frame = submitted.stamp, self.settings.map_frame
-        child = self.settings.tf_child_frame or submitted.frame_id
-        twist = twist_between(previous[0], previous[1], update.pose, update.timestamp) if previous else (
-            np.zeros(3), np.zeros(3))
+        output = self._output_pose(update.pose, submitted.frame_id)
+        if output is None:
+            return
+        output_pose, child = output
+        twist = (np.zeros(3), np.zeros(3))
+        if previous:
+            previous_output = self._output_pose(previous[0], submitted.frame_id)
+            twist = twist_between(previous_output[0], previous[1], output_pose, update.timestamp)
         try:
-            pose, odom = pose_stamped(update.pose, stamp, map_frame), odometry(update.pose, twist, stamp, map_frame,
+            pose, odom = pose_stamped(output_pose, stamp, map_frame), odometry(output_pose, twist, stamp, map_frame,
                                                                                child)
+            tf = self._tf_of(update.pose, frame_odometry, stamp, child)
         except InvalidPoseError as error:  # NaN or not a rotation at all (drift is re-orthonormalised): skip it
             self.outputs.poses_invalid += 1
             if self._throttle.allow("invalid_pose"):
@@ -682,16 +802,51 @@ class SlamNode(Node):
             return
         self.pose_pub.publish(pose)
         self.odom_pub.publish(odom)
-        if self.tf_broadcaster is not None:
-            self.tf_broadcaster.sendTransform(transform(update.pose, stamp, map_frame, child))
+        self._last_position = update.pose[:3, 3].copy()
+        if tf is not None:
+            self.tf_output.send(tf)
+            if self.map_to_odom_pub is not None:
+                self.map_to_odom_pub.publish(tf)
         self.outputs.poses += 1
         self.outputs.latency.add(time.monotonic() - submitted.received)
+
+    def _output_pose(self, camera_pose: np.ndarray, frame_id: str) -> Optional[tuple[np.ndarray, str]]:
+        """(pose, child frame) of ~/pose, ~/odom and ~/path: the camera's, or the base's with pose_frame base (None
+        while the extrinsic is unknown)."""
+        s = self.settings
+        if s.pose_frame == "camera":
+            return camera_pose, s.tf_child_frame or frame_id
+        base_camera = self.odometry.base_camera(frame_id)
+        if base_camera is None:
+            if self._throttle.allow("no_extrinsic"):
+                self.get_logger().warning(f"pose not published: no TF {s.base_frame} -> {frame_id} yet (pose_frame "
+                                          f"base needs the camera extrinsic)")
+            return None
+        return base_in_map(camera_pose, base_camera), s.base_frame
+
+    def _tf_of(self, camera_pose: np.ndarray, frame_odometry: Optional[FrameOdometry], stamp: Any,
+               child: str) -> Optional[TransformStamped]:
+        """The frame's transform: map -> odom (REP 105 mode, frames with odometry) or map -> camera."""
+        s = self.settings
+        if not self.tf_setup.rep105:
+            return (transform_stamped(camera_pose, stamp, s.map_frame, child) if self.tf_setup.tf_output != "none"
+                    else None)
+        if frame_odometry is None or frame_odometry.odom_camera is None:
+            return None
+        return transform_stamped(map_to_odom(camera_pose, frame_odometry.odom_camera), stamp, s.map_frame,
+                                 s.odom_frame)
 
     def _publish_path(self) -> None:
         if self.runtime is None or self.failed:
             return
         timestamps, poses = self.runtime.trajectory()
         finite = np.isfinite(poses).all(axis=(1, 2)) if len(timestamps) else np.zeros(0, bool)
+        if finite.any() and self.settings.pose_frame == "base":
+            base_camera = self.odometry.base_camera(self._camera_frame)
+            if base_camera is None:
+                return
+            poses = poses.copy()
+            poses[finite] = base_in_map(poses[finite], base_camera)
         if finite.any():
             self.path_pub.publish(path_message(timestamps[finite], poses[finite], self.settings.map_frame))
             self.outputs.paths += 1
@@ -704,10 +859,30 @@ class SlamNode(Node):
     def _mesh_resolution(self) -> Optional[float]:
         return self.settings.mesh_resolution or None
 
+    def state(self) -> str:
+        if self.failed:
+            return "failed"
+        if not self.active:
+            return "inactive"
+        return "running" if self.runtime else "starting" if self._starter else "waiting"
+
+    def ready(self) -> bool:
+        """A frame published now is taken without loss: the node is active and sees a publisher on each input,
+        and the runtime runs or the start-up queue has room (what `eslam bag play --wait-ready` waits for)."""
+        if not self.active or self.failed:
+            return False
+        watched = [sub for sub in self._subscriptions_in
+                   if not (sub.topic_name.endswith("camera_info") and self.pipeline.fixed_intrinsics)]
+        if not all(self.count_publishers(sub.topic_name) for sub in watched):
+            return False
+        return self.runtime is not None or self._held.has_room(self._held.bytes // max(len(self._held), 1))
+
     def health(self) -> dict[str, Any]:
         """The runtime's health figures and the node's counters, as published on ~/status."""
-        state = "failed" if self.failed else "running" if self.runtime else "starting" if self._starter else "waiting"
-        values: dict[str, Any] = {"runtime": state}
+        values: dict[str, Any] = {"runtime": self.state(), "ready": self.ready(),
+                                  "tf_mode": self.tf_setup.describe(self.settings, self._camera_frame or
+                                                                    "<image frame_id>"),
+                                  "tracking_mode": self.config.tracking.mode}
         if self.runtime is not None and not self.failed:
             values.update(self.runtime.health().as_dict())
         values["frames_accepted"] = self.pipeline.frames_accepted
@@ -720,6 +895,16 @@ class SlamNode(Node):
         values.update(self.mesh.status())
         values["stream_restarts"] = self.outputs.restarts
         values["frames_dropped_while_starting"] = self.outputs.dropped_while_starting
+        values["start_queue_frames"] = len(self._held)
+        values["start_queue_bytes"] = self._held.bytes
+        values["start_queue_peak_bytes"] = self._held.peak_bytes
+        values["start_queue_budget_bytes"] = self.settings.start_queue_bytes
+        values["input_rate_hz"] = self.inputs.rate()
+        for name in self._watched_inputs():
+            values[f"seconds_since_{name.replace('/', '_')}"] = self.inputs.silent_for(name)
+        if self.odometry is not None:
+            values.update(self.odometry.counts)
+            values["frames_waiting_for_odometry"] = len(self.odometry)
         values["latency_ms_receive_to_pose_last"] = 1000 * self.outputs.latency.last
         values["latency_ms_receive_to_pose_mean"] = 1000 * self.outputs.latency.mean
         values["latency_ms_receive_to_pose_max"] = 1000 * self.outputs.latency.worst
@@ -733,17 +918,33 @@ class SlamNode(Node):
         self._poses_at_last_status = (self.outputs.poses, now)
         skipped_now = values["skipped_total"] - self._skipped_at_last_status
         self._skipped_at_last_status = values["skipped_total"]
-        if self.failed:
-            level, summary = DiagnosticStatus.ERROR, self.failed
-        elif self.runtime is None:
-            level, summary = DiagnosticStatus.WARN, ("starting the SLAM runtime" if self._starter else
-                                                     "waiting for the first rgb + depth + camera info")
-        elif skipped_now:
-            level, summary = DiagnosticStatus.WARN, f"{skipped_now} input(s) skipped in the last period"
-        else:
-            level, summary = DiagnosticStatus.OK, f"tracking, {self.outputs.poses} poses published"
-        self.status_pub.publish(diagnostics(f"{self.get_name()}: ESLAM", level, summary, values,
-                                            self.get_clock().now().to_msg()))
+        problems = {key: values.get(key, 0) for key in ("odom_missing", "odom_gaps", "odom_jumps", "odom_rejected")}
+        problems_now = {key: count - self._odometry_problems_at_last_status.get(key, 0)
+                        for key, count in problems.items()}
+        self._odometry_problems_at_last_status = problems
+        s = self.settings
+        level, summary = status_level(StatusInputs(
+            failed=self.failed, state=values["runtime"], poses=self.outputs.poses,
+            silent_s={name: self.inputs.silent_for(name, now) for name in self._watched_inputs()} if self.active
+            else {}, pair_rate_hz=values["input_rate_hz"], measured_for_s=now - self.inputs.started,
+            skipped_now=skipped_now, odometry_problems_now=problems_now if self.odometry else {}),
+            s.no_input_timeout, s.min_input_rate)
+        msg = diagnostic_array(self.diagnostic_name(), s.diagnostics_hardware_id, level, summary, values,
+                               self.get_clock().now().to_msg())
+        self.status_pub.publish(msg)
+        self.diagnostics_pub.publish(msg)
+        # Above the camera: map "up" is z with REP 105 (map = odom), -y in camera mode (map = optical frame).
+        up = np.array([0.0, 0.0, 0.4]) if self.tf_setup.rep105 else np.array([0.0, -0.4, 0.0])
+        self.status_marker_pub.publish(status_marker(self.diagnostic_name(), level, summary, self._last_position + up,
+                                                     s.map_frame, msg.header.stamp))
+
+    def diagnostic_name(self) -> str:
+        """The status's name: the same for the node's whole life, so that diagnostic_aggregator can group it."""
+        return f"{self.get_name()}: ESLAM"
+
+    def _watched_inputs(self) -> list[str]:
+        """Inputs whose silence is a warning: the images, and the odometry topic when there is one."""
+        return list(STREAM_NAMES) + (["odom"] if self.tf_setup.odometry == "topic" else [])
 
     # ------------------------------------------------------------------------------------------ services
 
@@ -786,8 +987,12 @@ class SlamNode(Node):
             if self.runtime is not None:
                 self.runtime.reset()
             self._submitted.clear()
+            self._frame_odometry.clear()
+            self._map_started = False
             self._previous_pose = None
             self.mesh.reset()
+        if self.odometry is not None:
+            self.odometry.reset()
 
     # ------------------------------------------------------------------------------------------ lifecycle
 
@@ -821,6 +1026,8 @@ class SlamNode(Node):
         try:
             if not self.failed:
                 self._handle(self.pipeline.flush())
+                if self.odometry is not None:
+                    self._release_odometry(flush=True)
                 self._submit_held()
                 self._drain(math.inf if self.settings.policy == "offline" else LIVE_DRAIN_TIMEOUT_S)
             runtime.close(timeout=LIVE_DRAIN_TIMEOUT_S)
