@@ -11,6 +11,8 @@ Bags written here hold, per frame (header stamp = the frame's time stamp, bag ti
     /camera/color/camera_info    sensor_msgs/CameraInfo (pinhole, no distortion)
     /ground_truth/pose           geometry_msgs/PoseStamped, camera-to-world in OpenCV axes, frame "world"
                                  (frames without ground truth have none)
+    /odom                        with --odometry: nav_msgs/Odometry odom -> base_link made from the ground truth
+                                 and a base -> camera extrinsic (an exact wheel odometry; odom = world)
 Images carry the frame_id `camera_color_optical_frame`. Data sets whose time stamps are frame numbers (ICL-NUIM,
 Replica) are timed at `fps` frames per second (stamp = number / fps), so a 30 Hz sequence plays at 30 Hz.
 
@@ -61,6 +63,10 @@ STORAGE_SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3"}
 STORAGE_PLUGINS = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
 IMAGE_TYPE, INFO_TYPE = "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo"
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+# base_link -> camera optical frame of a camera 10 cm ahead of and 30 cm above the base, looking forward (x, y, z,
+# qx, qy, qz, qw): optical z = base x, optical x = -base y, optical y = -base z.
+FORWARD_CAMERA = (0.1, 0.0, 0.3, -0.5, 0.5, -0.5, 0.5)
 _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)  # type hashes match rclpy's Jazzy messages
 
 
@@ -76,6 +82,22 @@ class BagTopics:
     depth: str = "/camera/depth/image_raw"
     camera_info: str = "/camera/color/camera_info"
     ground_truth: str = "/ground_truth/pose"
+    odometry: str = "/odom"
+
+
+@dataclass(frozen=True)
+class BagOdometry:
+    """An odometry stream in a bag: nav_msgs/Odometry odom_frame -> base_frame, and where the camera sits on the
+    base ([x, y, z, qx, qy, qz, qw] of the camera optical frame in base_frame)."""
+
+    odom_frame: str = "odom"
+    base_frame: str = "base_link"
+    base_to_camera: tuple = FORWARD_CAMERA
+
+    def base_camera(self) -> np.ndarray:
+        from eslam_ros.tf_chain import pose_from_xyz_quaternion
+
+        return pose_from_xyz_quaternion(self.base_to_camera)
 
 
 # ================================================================================================= paths
@@ -151,13 +173,18 @@ def write_bag(
     depth_encoding: str = "16UC1",
     topics: BagTopics = BagTopics(),
     progress: bool = False,
+    odometry: Optional[BagOdometry] = None,
 ) -> BagWriteSummary:
-    """Write `dataset` as a rosbag2 bag (see the module docstring for its topics) and return what was written."""
+    """Write `dataset` as a rosbag2 bag (see the module docstring for its topics) and return what was written.
+
+    `odometry`: also write the ground truth as the exact odometry of a base carrying the camera (topics.odometry),
+    before the images of each frame (an odometry sample at every image stamp)."""
     folder, storage = bag_folder(out, storage)
     stamps = bag_timestamps(dataset, fps)
     gt_poses = dataset.gt_poses()
     intrinsics = dataset.intrinsics
     from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Odometry
     from rclpy.serialization import serialize_message  # rclpy: the same CDR bytes a live publisher sends
 
     try:
@@ -172,10 +199,18 @@ def write_bag(
         info_c = writer.add_connection(topics.camera_info, INFO_TYPE, typestore=_TYPESTORE)
         gt_c = writer.add_connection(topics.ground_truth, POSE_TYPE, typestore=_TYPESTORE) if any(
             p is not None for p in gt_poses) else None
+        odom_c = writer.add_connection(topics.odometry, ODOMETRY_TYPE, typestore=_TYPESTORE) if (
+            odometry is not None and gt_c is not None) else None
+        camera_base = np.linalg.inv(odometry.base_camera()) if odom_c is not None else None
         for i in tqdm(range(len(dataset)), desc="bag", unit="frame", disable=not progress):
             frame = dataset[i]
             stamp = sec_to_stamp(stamps[i])
             log_time = stamp.sec * 1_000_000_000 + stamp.nanosec
+            if odom_c is not None and gt_poses[i] is not None:
+                odom = Odometry(child_frame_id=odometry.base_frame)
+                odom.header.stamp, odom.header.frame_id = stamp, odometry.odom_frame
+                odom.pose.pose = pose_to_msg(gt_poses[i] @ camera_base)  # T_odom_base = T_odom_cam @ T_cam_base
+                writer.write(odom_c, log_time, serialize_message(odom))
             writer.write(rgb_c, log_time, serialize_message(rgb_to_image(frame.rgb, stamp, CAMERA_FRAME)))
             writer.write(depth_c, log_time, serialize_message(
                 depth_to_image(frame.depth, stamp, CAMERA_FRAME, depth_encoding)))
@@ -229,6 +264,7 @@ def play_bag(
     topics: Optional[Sequence[str]] = None,
     qos: str = "reliable",
     queue_depth: int = 100,
+    wait_ready: Optional[str] = None,
 ) -> PlaySummary:
     """Publish the bag's messages (raw CDR bytes) on their topics at the recorded pace times `rate`.
 
@@ -236,7 +272,8 @@ def play_bag(
     subscription has it). Before starting, waits up to `wait_for_subscribers` seconds until every image and
     camera-info topic has a subscriber. `passes`: how many times the bag is played (0 = until interrupted); each
     pass starts over with the bag's own stamps. rclpy is initialised here (and shut down again) unless the caller
-    did it.
+    did it. `wait_ready`: the SLAM node's name (e.g. /slam_node): after the subscribers, also wait (same timeout)
+    until its ~/status reports `ready` (it sees this player on every input and takes frames without loss).
     """
     import rclpy
     from rclpy.duration import Duration
@@ -271,6 +308,8 @@ def play_bag(
             log.warning("no subscriber on %s after %.0f s: playing anyway",
                         ", ".join(p.topic_name for p in sensors if p.get_subscription_count() == 0),
                         wait_for_subscribers)
+        if wait_ready and not wait_until_ready(node, wait_ready, wait_for_subscribers):
+            log.warning("%s did not report ready within %.0f s: playing anyway", wait_ready, wait_for_subscribers)
         count, loops, start = 0, 0, time.monotonic()
         while True:
             first: Optional[int] = None
@@ -309,6 +348,31 @@ def _wait_for_subscribers(publishers: Sequence[Any], timeout: float) -> bool:
     # discard the first messages.
     time.sleep(0.5)
     return True
+
+
+def wait_until_ready(node: Any, slam_node: str, timeout: float) -> bool:
+    """Spin `node` until the ~/status of `slam_node` says ready=True; False after `timeout` seconds."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from eslam_ros.qos import output_qos
+
+    ready = []
+
+    def on_status(msg: Any) -> None:
+        values = {kv.key: kv.value for status in msg.status for kv in status.values}
+        if values.get("ready") == "True":
+            ready.append(True)
+
+    topic = slam_node.rstrip("/") + "/status"
+    subscription = node.create_subscription(DiagnosticArray, topic, on_status, output_qos())
+    deadline = time.monotonic() + timeout
+    try:
+        while not ready and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+    finally:
+        node.destroy_subscription(subscription)
+    return bool(ready)
 
 
 # ================================================================================================= run
@@ -374,8 +438,12 @@ def run_bag(
     sync_max_interval: Optional[float] = 0.02,
     write_mesh: bool = True,
     progress: bool = True,
+    odometry: Optional[BagOdometry] = None,
 ) -> BagRunSummary:
     """Feed a bag through the node's input pipeline (pairing, conversion, checks) into the SLAM runtime.
+
+    `odometry`: read the odometry on topics.odometry as the node does in REP 105 mode (Frame.odom_pose matched to
+    each image stamp; with tracking.mode external, the poses themselves); its counts go into summary.json.
 
     Deterministic with the offline policy: every frame is tracked, in order. Writes what `eslam run` writes:
     config.yaml, trajectory.txt, groundtruth.txt (when the bag has ground truth), checkpoint.pt, mesh.ply and
@@ -396,17 +464,21 @@ def run_bag(
         info_c = _find_connection(reader, topics.camera_info, INFO_TYPE, "--info-topic", required=fixed is None)
         gt = _read_ground_truth(reader, _find_connection(reader, topics.ground_truth, POSE_TYPE, "--gt-topic",
                                                          required=False))
+        odom_c = _find_connection(reader, topics.odometry, ODOMETRY_TYPE, "--odom-topic") if odometry else None
+        robot = _bag_robot_odometry(odometry, cfg) if odometry else None
         out_dir.mkdir(parents=True, exist_ok=True)
         save_config(cfg, out_dir / "config.yaml")
         bar = tqdm(total=rgb_c.msgcount, desc="eslam bag run", unit="frame", disable=not progress,
                    dynamic_ncols=True)
         runtime, frames, start = None, 0, time.perf_counter()
         try:
-            for accepted in _accepted_frames(reader, rgb_c, depth_c, info_c, pipeline):
+            for accepted in _accepted_frames(reader, rgb_c, depth_c, info_c, pipeline, odom_c, robot,
+                                             cfg.tracking.mode == "external"):
                 if runtime is None:
                     runtime = make_runtime(cfg, accepted.intrinsics, workers=workers, policy=policy)
                     runtime.start()
                 pose = _ground_truth_at(gt, accepted.frame.timestamp)
+                pose = accepted.frame.pose if pose is None else pose  # without ground truth: the odometry seed
                 runtime.submit(dataclasses.replace(accepted.frame, pose=pose))
                 frames += 1
                 bar.update(len(runtime.poll()))
@@ -435,6 +507,8 @@ def run_bag(
     summary = BagRunSummary(out_dir, frames, seconds, seconds / max(frames, 1), rmse, dict(pipeline.skipped),
                             pipeline.unpaired, mesh_path)
     record = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(summary).items()}
+    if robot is not None:
+        record["odometry"] = dict(robot.counts)
     record.update({"bag": str(resolve_bag(bag)), "topics": dataclasses.asdict(topics), "workers": workers,
                    "policy": policy, "frames_per_second": frames / seconds if seconds > 0 else None,
                    "config_file": str(out_dir / "config.yaml")})
@@ -442,24 +516,68 @@ def run_bag(
     return summary
 
 
-def _accepted_frames(reader: Reader, rgb_c: Any, depth_c: Any, info_c: Any, pipeline: Any) -> Iterator[Any]:
-    """The bag's messages in recorded order through the input pipeline: the frames it accepts (skips are logged)."""
+def _bag_robot_odometry(odometry: BagOdometry, cfg: Config) -> Any:
+    """The node's odometry input (REP 105 mode, odometry topic, extrinsic parameter) for a bag run."""
+    from eslam_ros.node_params import NodeSettings
+    from eslam_ros.robot_odometry import RobotOdometry
+    from eslam_ros.tf_chain import select_setup
+
+    settings = NodeSettings(odom_frame=odometry.odom_frame, base_frame=odometry.base_frame, odom_source="topic",
+                            base_to_camera=tuple(float(v) for v in odometry.base_to_camera)).validate()
+    return RobotOdometry(settings, select_setup(settings, have_tf2_ros=False, have_tf2_msgs=False))
+
+
+def _accepted_frames(reader: Reader, rgb_c: Any, depth_c: Any, info_c: Any, pipeline: Any, odom_c: Any = None,
+                     robot: Any = None, external: bool = False) -> Iterator[Any]:
+    """The bag's messages in recorded order through the input pipeline: the frames it accepts (skips are logged).
+
+    With an odometry (`robot`, fed from `odom_c`), frames come out once their odometry is settled, bag time
+    standing for the clock (a frame waits for odometry until the bag is `odom.wait` s past its stamp)."""
+    from eslam_ros.robot_odometry import frame_with_odometry
     from eslam_ros.slam_node import AcceptedFrame, SkippedInput
 
     streams = {rgb_c.id: 0, depth_c.id: 1}
-    wanted = [rgb_c, depth_c] + ([info_c] if info_c is not None else [])
+    wanted = [rgb_c, depth_c] + ([info_c] if info_c is not None else []) + ([odom_c] if odom_c is not None else [])
+    map_started = False
 
-    def events() -> Iterator[Any]:
-        for c, _, raw in reader.messages(connections=wanted):
-            msg = _TYPESTORE.deserialize_cdr(raw, c.msgtype)
-            yield from (pipeline.add_image(streams[c.id], msg) if c.id in streams else pipeline.add_camera_info(msg))
-        yield from pipeline.flush()
+    def settled(now: float, flush: bool = False) -> Iterator[Any]:
+        nonlocal map_started
+        for accepted, odometry in robot.release(now, flush):
+            if odometry.problem is not None or odometry.jumped:
+                log.warning("frame at %.3f: %s", accepted.frame.timestamp, odometry.message)
+            frame = frame_with_odometry(accepted.frame, odometry, map_started, external)
+            if frame is None:
+                robot.counts["odom_frames_skipped"] += 1
+                continue
+            map_started = map_started or odometry.problem is None
+            yield dataclasses.replace(accepted, frame=frame)
 
-    for event in events():
-        if isinstance(event, SkippedInput):
-            log.warning("%s", event.message)
-        elif isinstance(event, AcceptedFrame):
-            yield event
+    def frames_of(pipeline_events: Sequence[Any], now: float, flush: bool = False) -> Iterator[Any]:
+        for event in pipeline_events:
+            if isinstance(event, SkippedInput):
+                log.warning("%s", event.message)
+            elif isinstance(event, AcceptedFrame):
+                if robot is None:
+                    yield event
+                else:  # it waits for its odometry
+                    robot.push(event.frame.timestamp, event.frame_id, event, now)
+        if robot is not None:
+            yield from settled(now, flush)
+
+    now = 0.0
+    for c, t, raw in reader.messages(connections=wanted):
+        now = t / 1e9
+        msg = _TYPESTORE.deserialize_cdr(raw, c.msgtype)
+        if odom_c is not None and c.id == odom_c.id:
+            refused = robot.add_message(msg)
+            if refused:
+                log.warning("%s", refused)
+            yield from frames_of([], now)
+        elif c.id in streams:
+            yield from frames_of(pipeline.add_image(streams[c.id], msg), now)
+        else:
+            yield from frames_of(pipeline.add_camera_info(msg), now)
+    yield from frames_of(pipeline.flush(), now, flush=True)
 
 
 def _write_ground_truth_and_ate(gt: Optional[Trajectory], timestamps: np.ndarray, poses: np.ndarray,
@@ -496,6 +614,8 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--storage", choices=sorted(STORAGE_PLUGINS), help="storage (default: from the suffix, else mcap)")
     w.add_argument("--depth-encoding", default="16UC1", choices=["16UC1", "32FC1"],
                    help="16UC1 = millimetres (default), 32FC1 = metres")
+    w.add_argument("--odometry", action="store_true", help="also write the ground truth as exact wheel odometry "
+                                                           "(nav_msgs/Odometry odom -> base_link on /odom)")
 
     y = sub.add_parser("play", help="publish a bag's messages on their topics (headless player)")
     y.add_argument("bag", help="bag folder or .mcap / .db3 file")
@@ -505,6 +625,8 @@ def build_parser() -> argparse.ArgumentParser:
     y.add_argument("--wait", type=float, default=10.0, help="seconds to wait for subscribers first (default 10)")
     y.add_argument("--topics", nargs="+", help="play only these topics")
     y.add_argument("--qos", default="reliable", choices=["reliable", "sensor_data"], help="publisher QoS")
+    y.add_argument("--wait-ready", metavar="NODE", help="also wait (up to --wait s) until this SLAM node (e.g. "
+                                                        "/slam_node) reports ready on its ~/status")
 
     r = sub.add_parser("run", help="run SLAM on a bag: synchronizer + core, no DDS, deterministic")
     r.add_argument("bag", help="bag folder or .mcap / .db3 file")
@@ -518,6 +640,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--depth-topic", default=BagTopics.depth)
     r.add_argument("--info-topic", default=BagTopics.camera_info)
     r.add_argument("--gt-topic", default=BagTopics.ground_truth)
+    r.add_argument("--odometry", action="store_true", help="use the bag's odometry (--odom-topic) as the node does "
+                                                           "in REP 105 mode (motion prior; the pose itself with "
+                                                           "--set tracking.mode=external)")
+    r.add_argument("--odom-topic", default=BagTopics.odometry)
+    for sub_parser in (w, r):
+        sub_parser.add_argument("--base-to-camera", type=float, nargs=7, default=list(FORWARD_CAMERA),
+                                metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+                                help="the camera optical frame in base_link (default: 10 cm ahead, 30 cm up, "
+                                     "looking forward)")
     r.add_argument("--depth-scale", type=float, help="depth units per metre (default: by encoding, 16UC1 = mm)")
     r.add_argument("--max-interval", type=float, default=0.02, help="largest rgb-depth stamp difference (s)")
     r.add_argument("--no-mesh", action="store_true", help="skip mesh extraction")
@@ -530,7 +661,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.action == "write":
         dataset = open_dataset(args.dataset, args.kind).subset(args.frames[0], args.frames[1], args.stride)
         s = write_bag(dataset, args.out, storage=args.storage, fps=args.fps, depth_encoding=args.depth_encoding,
-                      progress=True)
+                      progress=True, odometry=BagOdometry(base_to_camera=tuple(args.base_to_camera)) if
+                      args.odometry else None)
         print(f"{s.frames} frames ({s.ground_truth_poses} ground-truth poses, {s.duration_s:.2f} s) -> {s.path} "
               f"({s.storage})")
         return 0
@@ -540,7 +672,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         use_shipped_fastdds_profile()  # large images over shared memory: the publisher's segment must fit them
         try:
             s = play_bag(args.bag, rate=args.rate, passes=0 if args.loop else 1, wait_for_subscribers=args.wait,
-                         topics=args.topics, qos=args.qos)
+                         topics=args.topics, qos=args.qos, wait_ready=args.wait_ready)
         except KeyboardInterrupt:
             return 130
         print(f"published {s.messages} messages in {s.seconds:.1f} s ({s.loops} pass(es))")
@@ -548,11 +680,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from eslam_core.runtime import RuntimeCrashed
 
     cfg = load_config(args.config, parse_overrides(args.set))
-    topics = BagTopics(args.rgb_topic, args.depth_topic, args.info_topic, args.gt_topic)
+    topics = BagTopics(args.rgb_topic, args.depth_topic, args.info_topic, args.gt_topic, args.odom_topic)
     try:
         s = run_bag(args.bag, cfg, args.out, topics=topics, workers=args.workers, policy=args.policy,
                     depth_scale=args.depth_scale, sync_max_interval=args.max_interval or None,
-                    write_mesh=not args.no_mesh, progress=not args.quiet)
+                    write_mesh=not args.no_mesh, progress=not args.quiet,
+                    odometry=BagOdometry(base_to_camera=tuple(args.base_to_camera)) if args.odometry else None)
     except RuntimeCrashed as error:
         print(f"eslam bag run: the SLAM runtime crashed: {error}", file=sys.stderr)
         return 1
