@@ -26,6 +26,7 @@ from typing import Optional
 import cv2
 import numpy as np
 import torch
+from scipy.optimize import least_squares
 
 from eslam_core.camera import Intrinsics
 from eslam_core.geometry import depth_points_world, pixel_directions
@@ -176,8 +177,6 @@ def refine_with_depth(world: np.ndarray, pixels: np.ndarray, depth: np.ndarray, 
     PnP alone leaves an ambiguity when the points lie at similar depths: turning the camera while moving it
     sideways (a rotation about a point in the scene) shifts the image little. The points' depths then change by
     several percent, which the frame's own depth measures."""
-    from scipy.optimize import least_squares
-
     has = depth > 0
 
     def residuals(x: np.ndarray) -> np.ndarray:
