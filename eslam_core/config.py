@@ -230,6 +230,29 @@ class RunConfig:
 
 
 @dataclass
+class RuntimeConfig:
+    """Tuning of the runtimes (eslam_core/runtime): how `eslam run --workers 2` and the ROS node run SLAM."""
+
+    capacity: int = 8  # frames in the input buffer
+    publish_every: int = 5  # pipelined mapper: optimiser iterations between mid-step map publications
+    lend_threads: bool = True  # pipelined: an idle worker's torch threads go to the busy one
+    # Pipelined, offline policy: keyframes that may wait for the mapper before the older ones join the newest
+    # one's window without a step of their own (None = every keyframe gets its step; the live policy uses 0).
+    keyframe_backlog: Optional[int] = None
+    # Pipelined: once newer keyframes wait, a mapping step ends after this many iterations divided by their
+    # number (None = never), so that the mapper stays within about a keyframe of the tracker.
+    catch_up_iterations: Optional[int] = None
+
+    def validate(self, check) -> None:
+        check(self.capacity >= 1, "runtime.capacity", "must be >= 1")
+        check(self.publish_every >= 1, "runtime.publish_every", "must be >= 1")
+        check(self.keyframe_backlog is None or self.keyframe_backlog >= 0, "runtime.keyframe_backlog",
+              "must be >= 0, or null for no limit")
+        check(self.catch_up_iterations is None or self.catch_up_iterations >= 1, "runtime.catch_up_iterations",
+              "must be >= 1, or null for never")
+
+
+@dataclass
 class Config:
     name: str = "eslam"
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -241,6 +264,7 @@ class Config:
     mapping: MappingConfig = field(default_factory=MappingConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
     run: RunConfig = field(default_factory=RunConfig)
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
     def validate(self, source: str = "<config>") -> "Config":
         def check(ok: bool, key: str, message: str) -> None:

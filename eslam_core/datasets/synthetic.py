@@ -357,8 +357,30 @@ def build_room(seed: int = 0) -> SyntheticScene:
 
     The geometry is the same for every seed; the seed changes the noise in the textures.
     """
+    half = np.array(ROOM_SIZE[:2]) / 2.0
+    bound = np.array([[-half[0], -half[1], 0.0], [half[0], half[1], ROOM_SIZE[2]]])
+    return _assemble(_room_parts(), bound, seed)
+
+
+def build_long_room(seed: int = 0) -> SyntheticScene:
+    """A room twice as long as the furnished room (8.0 x 3.0 x 2.6 m, z up): its furniture in the west half, and
+    the table, boxes, sofa and painting again in the east half. A camera that walks along it sees far beyond its
+    first view (the map has to grow)."""
+    length, width, height = 2 * ROOM_SIZE[0], ROOM_SIZE[1], ROOM_SIZE[2]
+    parts: dict[str, list[trimesh.Trimesh]] = {"room": [_grid_box((length, width, height), (0.0, 0.0, height / 2.0),
+                                                                  inward=True)]}
+    east = ("table_top", "table_legs", "box_red", "box_blue", "sofa", "painting")
+    for dx, names in ((-ROOM_SIZE[0] / 2, None), (ROOM_SIZE[0] / 2, east)):
+        for name, pieces in _room_parts().items():
+            if name != "room" and (names is None or name in names):
+                parts.setdefault(name, []).extend(p.copy().apply_translation([dx, 0.0, 0.0]) for p in pieces)
+    bound = np.array([[-length / 2.0, -width / 2.0, 0.0], [length / 2.0, width / 2.0, height]])
+    return _assemble(parts, bound, seed)
+
+
+def _assemble(parts: dict[str, list[trimesh.Trimesh]], bound: np.ndarray, seed: int) -> SyntheticScene:
     meshes, ids = [], []
-    for name, pieces in _room_parts().items():
+    for name, pieces in parts.items():
         for piece in pieces:
             meshes.append(piece)
             if name == "room":
@@ -372,8 +394,6 @@ def build_room(seed: int = 0) -> SyntheticScene:
     part_ids = np.concatenate(ids)
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     mesh.face_attributes["part"] = part_ids
-    half = np.array(ROOM_SIZE[:2]) / 2.0
-    bound = np.array([[-half[0], -half[1], 0.0], [half[0], half[1], ROOM_SIZE[2]]])
     rng = np.random.default_rng([seed, 0x5EED])
     textures = {
         name: replace(tex, noise_offset=tuple(rng.uniform(-50.0, 50.0, 3))) for name, tex in _TEXTURES.items()
@@ -488,6 +508,23 @@ def handheld_trajectory(n_frames: int, fps: float = 30.0, seed: int = 0, speed: 
         pose[:3, :3] = pose[:3, :3] @ axis_angle_to_rotation(shake_rotation[i])
         poses[i] = pose
     return poses
+
+
+def walkthrough_trajectory(n_frames: int, step_m: float = 0.025, seed: int = 0) -> np.ndarray:
+    """(n_frames, 4, 4) poses of a camera carried along the long room (`build_long_room`) from x = -3 m, `step_m`
+    per frame (0.75 m/s at 30 Hz), 0.65 m from the north wall's side of the centre, looking across the room at the
+    furniture and the south wall, swaying by a few centimetres and degrees."""
+    if n_frames < 1 or not 0.0 < step_m <= 0.1:
+        raise SyntheticSceneError(f"walkthrough_trajectory needs n_frames >= 1 and 0 < step_m <= 0.1 m, got "
+                                  f"{n_frames} and {step_m}")
+    rng = np.random.default_rng([seed, 0xD00])
+    k = np.arange(n_frames)
+    phase = rng.uniform(0.0, 2.0 * np.pi, 3)
+    x = np.minimum(-3.0 + step_m * k, 3.0)
+    y = 0.65 + 0.06 * np.sin(2.0 * np.pi * k / 90.0 + phase[0])
+    z = 1.5 + 0.05 * np.sin(2.0 * np.pi * k / 70.0 + phase[1])
+    target_x = x + 0.4 * np.sin(2.0 * np.pi * k / 120.0 + phase[2])
+    return np.stack([look_at([x[i], y[i], z[i]], [target_x[i], -0.9, 0.4]) for i in range(n_frames)])
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -752,20 +789,26 @@ def write_tum_sequence(
 
 def generate_scene(
     out_dir, n_frames: int = 60, width: int = 320, height: int = 240, seed: int = 0,
-    sensor: Optional[SensorModel] = None,
+    sensor: Optional[SensorModel] = None, layout: str = "room",
 ) -> Path:  # fmt: skip
     """Build the room, walk the camera through it and write the TUM folder `out_dir` (must be new or empty).
 
     The seed drives the textures, the camera path and the sensor noise. `sensor` defaults to SensorModel().
+    `layout`: "room" (a hand-held loop round the table) or "long_room" (a walk along a room twice as long, see
+    build_long_room and walkthrough_trajectory).
     """
+    if layout not in ("room", "long_room"):
+        raise SyntheticSceneError(f"unknown layout {layout!r}: use 'room' or 'long_room'")
     sensor = SensorModel() if sensor is None else sensor
     if width < 8 or height < 8:
         raise SyntheticSceneError(f"image size {width}x{height} is too small: use at least 8x8 pixels")
     out = Path(out_dir)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise SyntheticSceneError(f"{out} already exists and is not an empty folder: delete it or pick a new one")
-    scene = build_room(seed)
-    poses = handheld_trajectory(n_frames, fps=FPS, seed=seed)
+    if layout == "room":
+        scene, poses = build_room(seed), handheld_trajectory(n_frames, fps=FPS, seed=seed)
+    else:
+        scene, poses = build_long_room(seed), walkthrough_trajectory(n_frames, seed=seed)
     return write_tum_sequence(out, scene, poses, default_intrinsics(width, height), sensor, seed)
 
 

@@ -3,8 +3,10 @@
 
 Keyframes are kept as uint8 colour and 16-bit depth (0.2 mm steps, up to 13.1 m): 1.76 MB for a 640x480 frame,
 instead of ~22 MB as float64 in the official implementation. A camera that runs for hours still makes a keyframe
-every few frames, so the store has a budget (`mapping.keyframe_budget_mb`). Over it, the oldest keyframes (not the
-newest `window`) are *reduced*: their images are kept at every `REDUCED_STRIDE`-th pixel along both axes (1/16 of
+every few frames. A camera that comes back (or stands still) makes keyframes that others already cover: an older
+keyframe that sees nearly all of a new keyframe's surface from about the same pose is dropped, so that the store
+grows with the explored space, not with time. The store also has a budget (`mapping.keyframe_budget_mb`). Over it, the oldest keyframes (not the
+newest `KEEP_FULL`) are *reduced*: their images are kept at every `REDUCED_STRIDE`-th pixel along both axes (1/16 of
 the bytes; mapping draws its few hundred rays per keyframe from the ~19k pixels left). When every old keyframe is
 reduced and the store is still over budget, the reduced keyframe that overlaps the newest keyframe's view most
 (the overlap the window selection measures) is dropped: the newest keyframe sees the same surface, and the feature
@@ -22,6 +24,10 @@ from eslam_core.camera import Intrinsics
 DEPTH_STEP = 1.0 / 5000.0  # metres per unit of the stored depth
 DEPTH_MAX = 65535 * DEPTH_STEP
 REDUCED_STRIDE = 4
+KEEP_FULL = 8  # the newest keyframes, which every mapping window holds, are never reduced
+# An older keyframe is redundant with a new one when it sees this much of the new one's surface from about the same
+# place (closer than the distance, turned less than the angle): the new keyframe replaces it.
+REDUNDANT_OVERLAP, REDUNDANT_DISTANCE_M, REDUNDANT_ANGLE_DEG = 0.9, 0.15, 15.0
 
 
 @dataclass
@@ -93,9 +99,9 @@ def overlap_fractions(points_world: torch.Tensor, poses: torch.Tensor, intr: Int
 class KeyframeStore:
     """The keyframes mapping can use, oldest first, under a memory budget (see the module docstring)."""
 
-    def __init__(self, budget_bytes: int, keep_full: int):
+    def __init__(self, budget_bytes: int, keep_full: int = KEEP_FULL):
         self.budget_bytes = budget_bytes
-        self.keep_full = keep_full  # the newest keyframes are never reduced
+        self.keep_full = keep_full
         self.items: list[Keyframe] = []
         self.made = 0  # keyframes ever added (the next keyframe's number)
         self.reduced = 0
@@ -118,6 +124,8 @@ class KeyframeStore:
         `newest_points`: world points of its surface, to find the keyframe it makes redundant."""
         self.items.append(kf)
         self.made = max(self.made, kf.number + 1)
+        if newest_points is not None and len(newest_points):
+            self._drop_redundant(kf, newest_points, intr)
         if self.budget_bytes <= 0:
             return
         total = self.nbytes()
@@ -137,6 +145,23 @@ class KeyframeStore:
             else:
                 victim = 0
             total -= self.items.pop(victim).nbytes()
+            self.dropped += 1
+
+    def _drop_redundant(self, kf: Keyframe, points: torch.Tensor, intr: Intrinsics) -> None:
+        old = len(self.items) - self.keep_full
+        if old <= 0:
+            return
+        poses = torch.stack([self.items[i].pose for i in range(old)])
+        near = (poses[:, :3, 3] - kf.pose[:3, 3]).norm(dim=1) < REDUNDANT_DISTANCE_M
+        cos = ((poses[:, :3, 2] * kf.pose[:3, 2]).sum(1)).clamp(-1, 1)
+        near &= cos > np.cos(np.radians(REDUNDANT_ANGLE_DEG))
+        if not near.any():
+            return
+        candidates = torch.nonzero(near).squeeze(1)
+        overlap = overlap_fractions(points, poses[candidates], intr)
+        best = int(overlap.argmax())
+        if float(overlap[best]) >= REDUNDANT_OVERLAP:
+            self.items.pop(int(candidates[best]))
             self.dropped += 1
 
     def replace_all(self, keyframes: list[Keyframe]) -> None:

@@ -57,7 +57,7 @@ class SceneMap:
     def __init__(self, cfg: Config, intr: Intrinsics, dirs_cam: torch.Tensor):
         self.cfg, self.intr, self.dirs_cam = cfg, intr, dirs_cam
         mc = cfg.mapping
-        self.keyframes = KeyframeStore(int(mc.keyframe_budget_mb * 2**20), keep_full=mc.window)
+        self.keyframes = KeyframeStore(int(mc.keyframe_budget_mb * 2**20))
         self.mapper = Mapper(cfg, dirs_cam, intr.height, intr.width)
         self.rng = np.random.default_rng(cfg.run.seed)
         self.extent: Optional[np.ndarray] = None

@@ -14,6 +14,7 @@ Input policies decide what happens when frames arrive faster than they can be tr
 """
 from __future__ import annotations
 
+import inspect
 import time
 from collections import deque
 from dataclasses import asdict, dataclass
@@ -169,9 +170,9 @@ def make_runtime(cfg: Config, intrinsics: Intrinsics, workers: int = 2, policy: 
 
     workers=1: lock-step SLAM on a background thread; workers=2: tracking and mapping processes. `threads`: torch
     threads per worker (default: `run.threads` from the config, or the machine's cores split between the workers).
-    `options` tune the implementation: `capacity` (input buffer, both), and for workers=2 `publish_every`,
-    `lend_threads`, `keyframe_backlog`, `catch_up_iterations` (see MultiProcessRuntime). Call `start()` (or use it
-    as a context manager) before submitting frames.
+    The implementation's tuning comes from the config's `runtime` section (`capacity` for both; for workers=2
+    `publish_every`, `lend_threads`, `keyframe_backlog`, `catch_up_iterations`); `options` override it. Call
+    `start()` (or use it as a context manager) before submitting frames.
     """
     check_policy(policy)
     if workers == 1:
@@ -181,8 +182,10 @@ def make_runtime(cfg: Config, intrinsics: Intrinsics, workers: int = 2, policy: 
     else:
         raise RuntimeSetupError(f"workers must be one of {WORKER_CHOICES} (1 = lock-step in this process, 2 = a "
                                 f"tracking and a mapping process), got {workers!r}")
+    accepted = inspect.signature(Runtime.__init__).parameters
+    tuning = {k: v for k, v in asdict(cfg.runtime).items() if k in accepted}
     try:
-        return Runtime(cfg, intrinsics, policy=policy, threads=threads, **options)
+        return Runtime(cfg, intrinsics, policy=policy, threads=threads, **{**tuning, **options})
     except TypeError as e:
         raise RuntimeSetupError(f"make_runtime(workers={workers}): {e}; the options are the keyword arguments of "
                                 f"{Runtime.__name__}") from None
