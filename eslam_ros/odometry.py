@@ -5,7 +5,10 @@ eslam_ros.tf_chain.TfOdometry); both answer `lookup(stamp)` with an `OdomLookup`
 each is reported instead of hidden:
 
 - *wait*: the image is newer than the newest odometry (odometry usually arrives a few ms after the image). The
-  frame waits in `OdometryWait`, at most `wait_s` seconds, then goes on without odometry ("missing").
+  frame waits in `OdometryWait` until a frame `wait_s` seconds newer has arrived (or, at the end of a stream,
+  `wait_s` + WALL_GRACE_S seconds of wall time passed), then goes on without odometry ("missing"). Stream time, not
+  wall time: a node busy with its own work (a loaded CPU, the offline policy's back-pressure) has not yet read the
+  odometry waiting in its queue, and must not give up on it.
 - *gap*: the odometry samples around the image stamp are more than `max_gap` seconds apart; an interpolation over
   such a hole is a guess, so the frame gets no odometry.
 - *jump*: between two frames the odometry moved faster than `max_speed` / `max_angular_speed` (a reset of the
@@ -106,14 +109,17 @@ class OdometryBuffer:
 
 
 Item = TypeVar("Item")
+# Wall-clock seconds beyond `wait_s` after which a frame stops waiting even if no newer frame came (end of stream).
+WALL_GRACE_S = 1.0
 
 
 class OdometryWait(Generic[Item]):
     """Frames waiting for the odometry at their stamp, released in arrival order.
 
     `push` a frame with its stamp, then `release(now)` returns (frame, lookup) for every frame at the head of the
-    queue whose odometry is known, or whose wait of `wait_s` seconds ran out (then MISSING, with the reason). Order
-    is kept: a frame never overtakes an older one.
+    queue whose odometry is known, or whose wait ran out: a frame `wait_s` seconds newer is queued behind it, or
+    `wait_s + WALL_GRACE_S` seconds passed (then MISSING, with the reason). Order is kept: a frame never overtakes
+    an older one.
     """
 
     def __init__(self, lookup: Callable[[float], OdomLookup], wait_s: float = 0.1) -> None:
@@ -134,11 +140,13 @@ class OdometryWait(Generic[Item]):
             stamp, since, item = self._queue[0]
             result = self.lookup(stamp)
             if result.status == OdomStatus.WAIT:
-                if not flush and now - since < self.wait_s:
+                newest = self._queue[-1][0]
+                waited = newest - stamp >= self.wait_s - 1e-9  # stamps are floats: a nanosecond of slack
+                if not (flush or waited or now - since >= self.wait_s + WALL_GRACE_S):
                     break
                 result = OdomLookup(OdomStatus.MISSING, message=(
-                    f"no odometry for the image stamp {stamp:.3f} after waiting {now - since:.2f} s "
-                    f"({result.message})"))
+                    f"no odometry for the image stamp {stamp:.3f} after waiting {now - since:.2f} s, "
+                    f"{newest - stamp:.2f} s of images ({result.message})"))
             self._queue.popleft()
             out.append((item, result))
         return out

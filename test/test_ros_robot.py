@@ -117,16 +117,22 @@ def test_frames_wait_for_their_odometry_in_order_then_give_up():
     wait = OdometryWait(buffer.lookup, wait_s=0.1)
     buffer.add(0.0, np.eye(4))
     wait.push(0.05, "a", now=10.0)
-    wait.push(0.02, "b", now=10.0)  # older stamp but queued later: still released after "a"
-    assert wait.release(now=10.05) == []
+    wait.push(0.06, "b", now=10.0)
+    assert wait.release(now=10.5) == []  # the node was busy for 0.5 s: the odometry may be in its queue, unread
     buffer.add(0.1, _planar(0.1, 0, 0))
-    released = wait.release(now=10.06)
+    released = wait.release(now=10.6)
     assert [item for item, _ in released] == ["a", "b"]
     assert all(result.status == OdomStatus.MATCHED for _, result in released)
     wait.push(0.5, "late", now=11.0)
+    wait.push(0.55, "later", now=11.0)
     assert wait.release(now=11.05) == []
-    ((item, result),) = wait.release(now=11.2)
-    assert item == "late" and result.status == OdomStatus.MISSING and "after waiting" in result.message
+    wait.push(0.6, "a frame 0.1 s newer", now=11.06)  # the images went on 0.1 s without odometry: give up
+    ((item, result),) = wait.release(now=11.06)
+    assert item == "late" and result.status == OdomStatus.MISSING and "0.10 s of images" in result.message
+    assert wait.release(now=11.5) == []
+    released = wait.release(now=12.2)  # no newer image (end of stream): after wait + 1 s of wall time
+    assert [item for item, _ in released] == ["later", "a frame 0.1 s newer"]
+    assert {result.status for _, result in released} == {OdomStatus.MISSING}
 
 
 def test_a_jump_is_taken_out_of_what_slam_gets_and_map_to_odom_takes_it_up():
@@ -170,7 +176,7 @@ def test_robot_odometry_gives_each_frame_the_camera_in_odom_and_counts_problems(
     np.testing.assert_allclose(odometry.odom_camera, expected, atol=1e-9)
     np.testing.assert_allclose(odometry.slam_pose, expected, atol=1e-9)
     robot.push(0.9, "camera_color_optical_frame", "too new", now=0.0)
-    ((item, odometry),) = robot.release(now=1.0)
+    ((item, odometry),) = robot.release(now=1.2)
     assert odometry.problem == OdomStatus.MISSING and odometry.odom_camera is None
     assert {k: robot.counts[k] for k in ("odom_messages", "odom_matched", "odom_missing")} == {
         "odom_messages": 6, "odom_matched": 1, "odom_missing": 1}
