@@ -139,7 +139,8 @@ def test_blocks_tile_the_observed_surface_without_seams(view):
 def test_unchanged_map_reports_nothing_and_a_change_reports_only_its_blocks(view):
     m = mesher()
     first = m.update(view, budget_s=1e9)
-    again = m.update(view, budget_s=1e9)
+    assert m.update(view, budget_s=1e9).meshed == 0  # the same view again: nothing to do
+    again = m.update(scene_view(), budget_s=1e9)  # a new view of the same map: every block re-meshed, none reported
     inside_map = [key for key in m.known if m.layout.grid_bound(key, view.bound, m.region(key)) is not None]
     assert again.meshed == len(inside_map) and again.changed == {} and again.removed == []
 
@@ -196,7 +197,21 @@ def test_surface_change_test_tolerates_sub_voxel_drift():
     assert surface_changed(old, BlockMesh(vertices + [1.5 * tol, 0, 0], faces, colors), tol)
     recoloured = colors.copy()
     recoloured[7, 0] ^= 0x80
+    assert not surface_changed(old, BlockMesh(vertices, faces, recoloured), tol)  # one stray vertex: noise
+    recoloured[10:20, 1] ^= 0x80
     assert surface_changed(old, BlockMesh(vertices, faces, recoloured), tol)
+    moved = vertices.copy()
+    moved[:3] += 3 * tol
+    assert not surface_changed(old, BlockMesh(moved, faces, colors), tol)
+    moved[:20] += 3 * tol
+    assert surface_changed(old, BlockMesh(moved, faces, colors), tol)
+    # Surface appearing in a block: a speck of one triangle is noise, a dozen vertices are a change; so is a block
+    # that had no surface before, however small its surface.
+    def without(n):
+        return BlockMesh(vertices[n:], faces[faces.min(1) >= n] - n, colors[n:])
+
+    assert not surface_changed(without(3), old, tol) and surface_changed(without(12), old, tol)
+    assert surface_changed(None, BlockMesh(vertices[:3], np.array([[0, 1, 2]]), colors[:3]), tol)
     assert surface_changed(old, BlockMesh(vertices[:250], faces[faces.max(1) < 250], colors[:250]), tol)  # half gone
     assert surface_changed(None, old, tol) and surface_changed(old, None, tol) and not surface_changed(None, None, tol)
 

@@ -13,12 +13,14 @@ large map is spread over several passes instead of stalling one:
    since it was last looked at. That is where the map's features change most: mapping optimises the planes with
    rays of the keyframe window, which overlaps the newest keyframe, and culling (which surface counts as seen)
    changes exactly where keyframes are added or moved;
-2. the other blocks, least recently meshed first: the decoders are shared by the whole map, so every mapping step
-   moves the surface everywhere a little, and this sweep lets those changes show up eventually.
+2. the other blocks, least recently meshed first, if they were meshed from an older view of the map: the decoders are
+   shared by the whole map, so every mapping step moves the surface everywhere a little, and this sweep lets those
+   changes show up eventually.
 
 When a block changed (`surface_changed`): a re-meshed block counts as changed, and is reported, only if a viewer
-would see a difference from the version last reported: a vertex moved by more than `tolerance` (half a voxel by
-default), a part of the surface appeared or vanished, or a colour changed by more than `color_tolerance`. Deciding
+would see a difference from the version last reported: vertices moved by more than `tolerance` (half a voxel by
+default), a part of the surface appeared or vanished, or colours changed by more than `color_tolerance` (at least
+MIN_CHANGED_VERTICES vertices each time: single stray vertices are noise). Deciding
 from the mesh rather than from which plane features changed is what makes "unchanged" mean unchanged for the
 viewer: the optimiser (Adam with momentum, decoders shared by the whole map) changes every parameter a little at
 every step, so a feature-level test would call almost every block changed; the mesh test does not, and a block
@@ -47,6 +49,8 @@ Key = tuple[int, int, int]  # integer block coordinates
 OBSERVATION_STRIDE = 4
 # Colour difference (of 1 = full scale, per channel) a viewer notices on a live preview.
 COLOR_TOLERANCE = 16 / 255
+# Vertices that must differ for a block to count as changed (fewer are noise where the observed region ends).
+MIN_CHANGED_VERTICES = 8
 
 
 class BlockLayoutError(ValueError):
@@ -230,10 +234,12 @@ def mesh_block(view: MapView, layout: BlockLayout, key: Key, settings: MeshSetti
 
 
 def surface_changed(old: Optional[BlockMesh], new: Optional[BlockMesh], tolerance: float,
-                    color_tolerance: float = COLOR_TOLERANCE, old_tree: Optional[cKDTree] = None) -> bool:
-    """Whether a viewer of `old` would see `new` differ: a vertex of either further than `tolerance` from every
-    vertex of the other (the surface moved, appeared or vanished), or a colour off by more than `color_tolerance`
-    from that of the nearest old vertex."""
+                    color_tolerance: float = COLOR_TOLERANCE, old_tree: Optional[cKDTree] = None,
+                    min_vertices: int = MIN_CHANGED_VERTICES) -> bool:
+    """Whether a viewer of `old` would see `new` differ: `min_vertices` vertices of either further than `tolerance`
+    from every vertex of the other (the surface moved, appeared or vanished), or that many colours off by more than
+    `color_tolerance` from that of the nearest old vertex. (A mesh smaller than `min_vertices` needs all of its
+    vertices to count; fewer stray vertices are noise at the edge of the observed region, not a change.)"""
     if old is None or new is None:
         return (old is None) != (new is None)
     if (old.vertices.shape == new.vertices.shape and np.array_equal(old.vertices, new.vertices)
@@ -241,13 +247,15 @@ def surface_changed(old: Optional[BlockMesh], new: Optional[BlockMesh], toleranc
         return False
     tree = cKDTree(old.vertices) if old_tree is None else old_tree
     distance, nearest = tree.query(new.vertices, distance_upper_bound=2 * tolerance)
-    if not np.all(distance <= tolerance):
+    far = distance > tolerance
+    if far.sum() >= min(min_vertices, len(new.vertices)):
         return True
-    color_step = np.abs(new.colors[:, :3].astype(np.int16) - old.colors[nearest, :3].astype(np.int16)).max()
-    if color_step > color_tolerance * 255:
+    close = ~far
+    color_step = np.abs(new.colors[close, :3].astype(np.int16) - old.colors[nearest[close], :3].astype(np.int16))
+    if (color_step.max(axis=1) > color_tolerance * 255).sum() >= min(min_vertices, len(new.vertices)):
         return True
     back, _ = cKDTree(new.vertices).query(old.vertices, distance_upper_bound=2 * tolerance)
-    return not np.all(back <= tolerance)
+    return (back > tolerance).sum() >= min(min_vertices, len(old.vertices))
 
 
 # ------------------------------------------------------------------------------------------------ incremental
@@ -300,6 +308,9 @@ class IncrementalMesher:
         self._boxes: dict[Key, Optional[np.ndarray]] = {}  # block -> the grid box it was last meshed over
         self._grid_boxes: dict[Key, Optional[np.ndarray]] = {}  # block -> the grid box it would be meshed over now
         self._bound: Optional[np.ndarray] = None
+        self._meshed_in: dict[Key, int] = {}  # block -> the view (number) it was last meshed from
+        self._view: Optional[MapView] = None
+        self._views = 0
         self._tick = itertools.count()
         self._passes = 0
 
@@ -325,8 +336,11 @@ class IncrementalMesher:
         # Blocks outside the map's bound have nothing to mesh: settled at once, at no cost to the budget.
         for key in [key for key in self._dirty if self._box(view, key) is None]:
             self._record(key, None, None, changed, removed)
-        stale = sorted((key for key in self._observers if key not in self._dirty and self._box(view, key) is not None),
-                       key=lambda key: self._meshed_at.get(key, -1))
+        if view is not self._view:
+            self._view, self._views = view, self._views + 1
+        # Stale: meshed from an older view of the map (one meshed from this view would come out the same).
+        stale = sorted((key for key in self._observers if key not in self._dirty and self._box(view, key) is not None
+                        and self._meshed_in.get(key) != self._views), key=lambda key: self._meshed_at.get(key, -1))
         order = sorted(self._dirty, key=self._dirty.__getitem__, reverse=True) + stale
         meshed = 0
         for key in order:
@@ -412,6 +426,7 @@ class IncrementalMesher:
         """A block was meshed (over `box`, None: outside the map): report it if its surface changed."""
         self._dirty.pop(key, None)
         self._meshed_at[key] = self._passes
+        self._meshed_in[key] = self._views
         self._boxes[key] = box
         old = self._reported.get(key)
         if new is None:
