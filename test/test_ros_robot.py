@@ -295,19 +295,21 @@ def test_bag_odometry_is_the_ground_truth_of_the_base(odom_bag):
 FAST = {"mapping": {"iterations": 4, "rays": 600, "first_iterations": 60}, "mesh": {"enabled": False}}
 
 
-def _run(bag, tmp_path, name, mode: str, odometry) -> dict:
+def _run(bag, tmp_path, name, mode: str, odometry, workers: int = 1) -> dict:
     cfg = load_config("fast", {**FAST, "tracking": {"mode": mode}})
-    summary = run_bag(bag, cfg, tmp_path / name, progress=False, odometry=odometry, write_mesh=False)
+    summary = run_bag(bag, cfg, tmp_path / name, progress=False, odometry=odometry, write_mesh=False,
+                      workers=workers)
     record = json.loads((tmp_path / name / "summary.json").read_text())
     assert summary.frames == 10
     return record
 
 
-def test_mapping_only_mode_has_the_ate_of_the_exact_odometry(odom_bag, tmp_path):
-    """tracking.mode external: the poses are the odometry's, which is exact here, so the ATE is ~0 (needs the
-    core's external mode: Frame.odom_pose as the pose)."""
+@pytest.mark.parametrize("workers", [1, 2])
+def test_mapping_only_mode_has_the_ate_of_the_exact_odometry(odom_bag, tmp_path, workers):
+    """tracking.mode external: the poses are the odometry's, which is exact here, so the ATE is ~0, in both
+    runtimes (the two-process one must carry Frame.odom_pose to its tracking process)."""
     sequence, bag = odom_bag
-    record = _run(bag, tmp_path, "external", "external", BagOdometry())
+    record = _run(bag, tmp_path, "external", "external", BagOdometry(), workers)
     assert record["odometry"]["odom_matched"] == 10 and record["odometry"]["odom_missing"] == 0
     estimate = read_tum(tmp_path / "external" / "trajectory.txt")
     np.testing.assert_allclose(estimate.poses, np.stack(sequence.gt_poses()), atol=1e-5)
