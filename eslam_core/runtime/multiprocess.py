@@ -373,7 +373,7 @@ class MultiProcessRuntime(SavingMixin):
             self._board.add(Counter.RECEIVED)
             while True:
                 written, evicted = self._ring.put(rgb8, pf.depth.numpy(), frame.index, frame.timestamp, frame.pose,
-                                                  arrival, live, timeout=0.1)
+                                                  arrival, live, timeout=0.1, odom_pose=frame.odom_pose)
                 if evicted:
                     self._board.add(Counter.DROPPED_AT_SUBMIT, evicted)
                 if written:

@@ -29,6 +29,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from eslam_core.device import synchronize
+
 
 class SharedMemoryError(RuntimeError):
     """The shared map does not fit the field it is copied into (the two workers built different maps)."""
@@ -46,6 +48,7 @@ class RingFrame:
     depth: np.ndarray  # (H, W) float32 metres
     gt_pose: Optional[np.ndarray]
     arrival: float  # time.monotonic() at submit (the clock is the same in every process)
+    odom_pose: Optional[np.ndarray] = None  # see Frame.odom_pose
 
 
 class FrameRing:
@@ -61,6 +64,8 @@ class FrameRing:
         self.stamps = torch.zeros(capacity, 2, dtype=torch.float64).share_memory_()  # timestamp, arrival
         self.gt_pose = torch.zeros(capacity, 4, 4, dtype=torch.float64).share_memory_()
         self.has_pose = torch.zeros(capacity, dtype=torch.bool).share_memory_()
+        self.odom_pose = torch.zeros(capacity, 4, 4, dtype=torch.float64).share_memory_()
+        self.has_odom = torch.zeros(capacity, dtype=torch.bool).share_memory_()
         self.counts = torch.zeros(3, dtype=torch.int64).share_memory_()
         self.cond = ctx.Condition(ctx.Lock())
 
@@ -72,7 +77,7 @@ class FrameRing:
         return max(0, self._pending())
 
     def put(self, rgb: np.ndarray, depth: np.ndarray, index: int, timestamp: float, gt_pose: Optional[np.ndarray],
-            arrival: float, live: bool, timeout: float) -> tuple[bool, int]:
+            arrival: float, live: bool, timeout: float, odom_pose: Optional[np.ndarray] = None) -> tuple[bool, int]:
         """Write one frame (single writer). Returns (written, evicted).
 
         Offline (live=False): waits up to `timeout` s for a free slot and returns (False, 0) without one, so that the
@@ -96,6 +101,9 @@ class FrameRing:
         self.has_pose[slot] = gt_pose is not None
         if gt_pose is not None:
             self.gt_pose[slot].copy_(torch.from_numpy(np.asarray(gt_pose, dtype=np.float64)))
+        self.has_odom[slot] = odom_pose is not None
+        if odom_pose is not None:
+            self.odom_pose[slot].copy_(torch.from_numpy(np.asarray(odom_pose, dtype=np.float64)))
         with self.cond:
             self.counts[self.WRITTEN] += 1
             self.cond.notify_all()
@@ -116,7 +124,8 @@ class FrameRing:
             frame = RingFrame(
                 int(self.index[slot]), float(self.stamps[slot, 0]), self.rgb[slot].numpy().copy(),
                 self.depth[slot].numpy().copy(), self.gt_pose[slot].numpy().copy() if bool(self.has_pose[slot]) else
-                None, float(self.stamps[slot, 1]))
+                None, float(self.stamps[slot, 1]),
+                self.odom_pose[slot].numpy().copy() if bool(self.has_odom[slot]) else None)
             self.counts[self.TAKEN] = taken + 1
             self.cond.notify_all()
         return frame, skipped
@@ -183,9 +192,15 @@ class SharedMap:
 
     @staticmethod
     def create(meta: MapMeta, field: nn.Module) -> "SharedMap":
-        """Buffers sized for `field` (by its owner, the mapper); nothing is readable until the first publish."""
+        """Buffers sized for `field` (by its owner, the mapper); nothing is readable until the first publish.
+        They live on the field's device: shared memory for a CPU map; for a GPU map device memory, which the
+        torch.multiprocessing queue hands to the tracker by CUDA IPC (the mapper holds the buffers while they are
+        the newest generation; torch keeps them for a reader that still holds them after that)."""
         size = sum(p.numel() for p in field.parameters())
-        buffers = torch.zeros(2, size, dtype=torch.float32).share_memory_()
+        device = next(field.parameters()).device
+        buffers = torch.zeros(2, size, dtype=torch.float32, device=device)
+        if device.type == "cpu":
+            buffers.share_memory_()
         with meta.lock:  # pins stay: a reader of the old pair may hold one, and publish waits for it
             meta.state[MapMeta.FRONT] = -1
             meta.state[MapMeta.GENERATION] += 1
@@ -215,6 +230,7 @@ class SharedMap:
         with torch.no_grad():
             for p, offset, n in layout:
                 buffer[offset: offset + n].copy_(p.detach().reshape(-1))
+        synchronize(buffer.device)  # a GPU's copies are queued: done before another process may read them
         with self.meta.lock:
             self.meta.state[MapMeta.FRONT] = back
             self.meta.state[MapMeta.MAPPED] = mapped
@@ -241,6 +257,7 @@ class SharedMap:
             with torch.no_grad():
                 for p, offset, n in layout:
                     p.copy_(buffer[offset: offset + n].view_as(p))
+            synchronize(buffer.device)  # copied out before the pin goes and the mapper may rewrite the buffer
         finally:
             with self.meta.lock:
                 self.meta.state[MapMeta.PINS + front] -= 1
@@ -274,6 +291,8 @@ class Counter(IntEnum):
     MAP_BYTES = 20  # mapper: bytes of the field's parameters (grows with the explored area)
     KEYFRAME_BYTES = 21  # mapper: bytes of the keyframe store (bounded by mapping.keyframe_budget_mb)
     KEYFRAMES_KEPT = 22  # mapper: keyframes in the store
+    TRACKER_DEVICE_PEAK_MB = 23  # tracker: peak GPU memory of its tensors (0 on the CPU)
+    MAPPER_DEVICE_PEAK_MB = 24  # mapper: the same
 
 
 class HealthBoard:

@@ -462,8 +462,8 @@ class TrackerWorker:
             self._refresh_map()
         self.cores.busy(True)
         start = time.monotonic()
-        pf = prepare_frame(Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose), self.intr,
-                           self.cfg.camera)
+        pf = prepare_frame(Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose, item.odom_pose),
+                           self.intr, self.cfg.camera)
         if not self.replica.started:  # the first frame starts the map; the mapper warms it up
             pose0, keyframe = self.frontend.first_pose(pf), True
             extent = initial_extent(self.cfg, pf, self.intr, pose0)

@@ -29,6 +29,12 @@ class TrackingResult:
     pose: torch.Tensor  # (4, 4) camera-to-world
     loss: float  # best loss over the iterations
     rays: int  # rays per iteration after dropping those without depth
+    # The evidence for the tracking quality (quality.py), NaN where not measured: pixels with depth inside the
+    # border / pixels inside the border; scored points within the truncation of the mapped surface at the
+    # returned pose; scored points in observed space.
+    depth_fraction: float = float("nan")
+    inlier_fraction: float = float("nan")
+    observed_fraction: float = float("nan")
 
 
 def constant_velocity(prev2: np.ndarray | None, prev: np.ndarray, time_ratio: float = 1.0) -> np.ndarray:
@@ -73,8 +79,9 @@ class Tracker:
         candidates = torch.nonzero(valid).squeeze(1)
         if tc.observed_only and observed is not None:
             candidates = self._in_observed_space(candidates, frame.depth.reshape(-1), init_pose, observed)
+        depth_fraction = len(candidates) / max(int(self.border.sum()), 1)
         if len(candidates) < 10 or tc.iterations == 0:
-            return TrackingResult(init_pose.clone(), float("nan"), len(candidates))
+            return TrackingResult(init_pose.clone(), float("nan"), len(candidates), depth_fraction)
         t, q = pose_to_params(init_pose)
         t.requires_grad_(True)
         q.requires_grad_(True)
@@ -93,10 +100,11 @@ class Tracker:
             loss = eslam_losses(out, d_gt, rgb[pix], self.cfg.model.truncation, keep).total(tc.weights)
             if loss.item() < best_loss:
                 best_loss, best_pose = loss.item(), c2w.detach().clone()
+                inliers = float(((out.depth.detach() - d_gt).abs() < self.cfg.model.truncation).float().mean())
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
-        return TrackingResult(best_pose, best_loss, len(candidates))
+        return TrackingResult(best_pose, best_loss, len(candidates), depth_fraction, inliers)
 
     def _in_observed_space(self, candidates: torch.Tensor, depth: torch.Tensor, pose: torch.Tensor,
                            observed: ObservedSpace) -> torch.Tensor:

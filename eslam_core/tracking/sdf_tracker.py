@@ -121,8 +121,9 @@ class SDFTracker:
         if usable is not None:
             valid &= usable.reshape(-1)
         candidates = torch.nonzero(valid).squeeze(1)
+        depth_fraction = len(candidates) / max(int(self.border.sum()), 1)
         if len(candidates) < 50 or tc.iterations == 0:
-            return TrackingResult(init_pose.clone(), float("nan"), len(candidates))
+            return TrackingResult(init_pose.clone(), float("nan"), len(candidates), depth_fraction)
         pix = candidates[torch.randint(len(candidates), (min(tc.rays, len(candidates)),))]  # (randperm: 2 ms)
         p_cam = (self.dirs_cam[pix] * depth[pix, None]).double()
         lam = tc.color_weight
@@ -134,7 +135,7 @@ class SDFTracker:
                             for i, level in enumerate(grey_pyramid(frame.rgb, len(ref.levels)))]
         R, t = init_pose[:3, :3].double(), init_pose[:3, 3].double()
         used = photo_used = None  # the points scored, fixed at the initial pose so that costs compare
-        best_cost, best = float("inf"), init_pose.clone()
+        best_cost, best, inliers = float("inf"), init_pose.clone(), 0.0
         fixed = FrozenField(field)  # the map does not change while tracking
         for it in range(tc.iterations + 1):  # the last pass only scores the final pose
             x = p_cam @ R.T + t
@@ -160,7 +161,7 @@ class SDFTracker:
                     photo_cost = torch.where(ok, huber_cost(r_ph), huber_cost(torch.tensor(SATURATED_COLOR)))
                     cost += tc.photometric_weight * float(photo_cost[photo_used].mean())
             if cost < best_cost:
-                best_cost = cost
+                best_cost, inliers = cost, float(band.sum()) / max(float(used.sum()), 1.0)
                 best = torch.eye(4)
                 best[:3, :3], best[:3, 3] = R.float(), t.float()
             if it == tc.iterations or band.sum() < 30:
@@ -190,4 +191,5 @@ class SDFTracker:
             R, t = dR @ R, dR @ t + delta[:3]
             if delta.norm() < 1e-6:
                 break
-        return TrackingResult(best, best_cost, len(candidates))
+        observed_fraction = float(used.float().mean()) if used is not None else float("nan")
+        return TrackingResult(best, best_cost, len(candidates), depth_fraction, inliers, observed_fraction)

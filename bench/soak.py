@@ -1,0 +1,169 @@
+"""Soak: hours of a camera in the same space, compressed. A sequence is played forward, then backward, again and
+again (monotonic stamps at 30 Hz) through the pipelined runtime; memory must stop growing once the space is
+explored, and accuracy must not decay.
+
+    python bench/soak.py --data ../shared/data/icl_office_kt0 --kind icl --minutes 20
+    python bench/soak.py --minutes 2          # the synthetic room (generated), quick
+
+Every `--every` seconds it prints the resident memory of each process (parent, tracker, mapper), the keyframes
+kept, and the bytes of the map and the keyframe store; after each lap the lap's ATE (RMSE against ground truth
+over that lap's frames, rigidly aligned). At the end: memory growth from the end of lap 2 to the end, and the
+worst lap's ATE against the first lap's (targets: < 10 % and <= 1.5x). Writes JSON beside the printed table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from eslam_core.camera import Frame  # noqa: E402
+from eslam_core.cli import parse_overrides  # noqa: E402
+from eslam_core.config import load_config  # noqa: E402
+from eslam_core.datasets import open_dataset  # noqa: E402
+from eslam_core.evaluation.trajectory import Trajectory, ate  # noqa: E402
+from eslam_core.runtime import make_runtime  # noqa: E402
+
+FPS = 30.0
+
+
+def rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
+def lap_order(n: int, lap: int) -> range:
+    return range(n) if lap % 2 == 0 else range(n - 1, -1, -1)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default=None, help="a data set folder (default: the synthetic room, generated)")
+    ap.add_argument("--kind", default="auto")
+    ap.add_argument("--config", default="fast")
+    ap.add_argument("--set", action="append", default=[], help="config override KEY=VALUE")
+    ap.add_argument("--minutes", type=float, default=20.0, help="minutes of 30 Hz input to play")
+    ap.add_argument("--every", type=float, default=30.0, help="seconds between memory reports")
+    ap.add_argument("--policy", choices=("offline", "live"), default="offline",
+                    help="offline: every frame, as fast as SLAM goes; live: frames at 30 Hz of wall time, the "
+                         "tracker takes the newest (the ROS node's default)")
+    ap.add_argument("--out", default="runs/soak.json")
+    args = ap.parse_args()
+
+    if args.data is None:
+        from eslam_core.datasets.synthetic import ensure_scene
+
+        root = ensure_scene(Path(os.environ.get("ESLAM_CACHE", Path.home() / ".cache" / "eslam")), n_frames=120)
+        ds = open_dataset(root, "tum")
+    else:
+        ds = open_dataset(Path(args.data), args.kind)
+    cfg = load_config(args.config, {"dataset": {"kind": ds.kind}, **parse_overrides(args.set)})
+    frames = [ds[i] for i in range(len(ds))]  # in memory: the soak measures SLAM, not the disk
+    n, total = len(frames), int(args.minutes * 60 * FPS)
+    laps = math.ceil(total / n)
+    print(f"{n} frames x {laps} laps = {laps * n} frames ({laps * n / FPS / 60:.1f} min of 30 Hz input), "
+          f"config {args.config}, pipelined runtime, {args.policy} policy", flush=True)
+
+    rt = make_runtime(cfg, ds.intrinsics, workers=2, policy=args.policy)
+    rt.start()
+    pids = {"parent": os.getpid(), **rt.resources()["pids"]}
+    samples, lap_ends, truth = [], [], {}
+    start = last_report = time.monotonic()
+
+    def report(label: str) -> dict:
+        figures = rt.worker_figures()
+        sample = {"t_s": time.monotonic() - start, "label": label, "tracked": rt.health().frames_tracked,
+                  **{f"rss_mb_{k}": rss_mb(p) for k, p in pids.items()},
+                  "keyframes_kept": int(figures.get("keyframes_kept", 0)),
+                  "map_mb": figures.get("map_bytes", 0.0) / 2**20,
+                  "keyframe_mb": figures.get("keyframe_bytes", 0.0) / 2**20}
+        sample["rss_mb_total"] = sum(v for k, v in sample.items() if k.startswith("rss_mb_") and math.isfinite(v))
+        samples.append(sample)
+        print(f"{sample['t_s']:7.0f} s  {label:>8}  frames {sample['tracked']:6d}  RSS parent "
+              f"{sample['rss_mb_parent']:6.0f}  tracker {sample['rss_mb_tracker']:6.0f}  mapper "
+              f"{sample['rss_mb_mapper']:6.0f}  total {sample['rss_mb_total']:6.0f} MB  keyframes "
+              f"{sample['keyframes_kept']:5d}  map {sample['map_mb']:6.1f} MB  keyframe store "
+              f"{sample['keyframe_mb']:6.1f} MB", flush=True)
+        return sample
+
+    tracked: dict = {}  # frame -> pose as tracked (polled as it comes)
+    lap_ate: list = []
+
+    def collect() -> None:
+        for u in rt.poll():
+            tracked[u.index] = u.pose
+
+    def score_lap(lap: int) -> None:
+        """The lap's ATE from the poses as tracked (printed while the soak goes on)."""
+        sel = sorted(j for j in tracked if truth[j][0] == lap and truth[j][1] is not None)
+        if len(sel) < 3:
+            return
+        t = np.array(sel, dtype=np.float64) / FPS
+        err = ate(Trajectory(t, np.stack([tracked[j] for j in sel])),
+                  Trajectory(t, np.stack([truth[j][1] for j in sel])), max_dt=1e-6).rmse
+        lap_ate.append(100.0 * err)
+        print(f"lap {lap + 1:3d}: ATE {lap_ate[-1]:.2f} cm over {len(sel)} tracked frames", flush=True)
+
+    k = 0
+    for lap in range(laps):
+        for i in lap_order(n, lap):
+            if k >= total:
+                break
+            f = frames[i]
+            if args.policy == "live":  # as a camera delivers them
+                time.sleep(max(0.0, start + k / FPS - time.monotonic()))
+            rt.submit(Frame(k, k / FPS, f.rgb, f.depth, f.pose))
+            truth[k] = (lap, f.pose)
+            k += 1
+            collect()
+            if time.monotonic() - last_report >= args.every:
+                last_report = time.monotonic()
+                report("")
+        lap_ends.append(k)
+        if lap >= 1:
+            score_lap(lap - 1)  # its frames are tracked by now, except a few still queued
+    while True:  # every frame tracked (or dropped by the live policy) and every keyframe mapped
+        h = rt.health()
+        if h.frames_tracked + h.frames_dropped >= k and h.input_queue_depth == 0 and h.keyframe_queue_depth == 0:
+            break
+        collect()
+        time.sleep(0.1)
+    final = report("end")
+    collect()
+    score_lap(len(lap_ends) - 1)
+    rt.close()
+
+    # memory after the second lap: the first sample taken once lap 2's frames were all tracked
+    after_two = next((s for s in samples if s["t_s"] >= (lap_ends[min(1, len(lap_ends) - 1)] / FPS
+                                                         if args.policy == "live" else 0.0)
+                      and s["tracked"] >= (0 if args.policy == "live" else lap_ends[min(1, len(lap_ends) - 1)])),
+                     final)
+    growth = final["rss_mb_total"] / after_two["rss_mb_total"] - 1.0
+    worst = max(lap_ate) / lap_ate[0] if lap_ate else float("nan")
+    print(f"\nmemory (all processes): {after_two['rss_mb_total']:.0f} MB after lap 2 -> {final['rss_mb_total']:.0f} "
+          f"MB at the end: {100 * growth:+.1f} % (target < 10 %)")
+    print(f"ATE: first lap {lap_ate[0]:.2f} cm, worst lap {max(lap_ate):.2f} cm = {worst:.2f}x (target <= 1.5x)"
+          if lap_ate else "ATE: no ground truth")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"data": str(args.data), "config": args.config, "sets": args.set, "frames": k,
+                               "laps": len(lap_ends), "samples": samples, "lap_ate_cm": lap_ate,
+                               "memory_growth_after_lap2": growth, "worst_lap_ate_ratio": worst}, indent=2))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
