@@ -7,11 +7,15 @@ What a subscriber gets
     whose surface changed (the same id, so RViz and Foxglove replace just that block) and a DELETE for every block
     that became empty. A DELETEALL is sent only when the map is reset.
 Late subscribers
-    A message holds only changes, so replaying the last one (transient local, depth 1) would not give a newcomer
-    the map. Instead, whenever a subscription matches the publisher (a new RViz display, a Foxglove client: the
-    bridge subscribes per client, `ros2 bag record`), the next tick publishes every current block in one message;
-    subscribers that already have them just redraw them. The publisher stays transient local, so that subscribers
-    configured that way (as docs/ros.md used to ask) still match.
+    A message holds only changes, so the last one alone (what transient local keeps) does not give a newcomer the
+    map. A full message (an ADD for every current block; subscribers that have them just redraw them) is published
+    - when a subscription matches the publisher: a new RViz display, `ros2 bag record`, a foxglove_bridge that
+      subscribes once per client (ros-foxglove-bridge);
+    - as every FULL_EVERY-th message: any viewer has the whole map within that many messages, also behind a bridge
+      that subscribes once and hands its cached last message to new clients (the foxglove-sdk bridge);
+    - once when the mesh rests (nothing sent for `rest_s` after a change): so the last message, the one transient
+      local keeps and bridges cache, is complete whenever the map is not changing.
+    The publisher stays transient local, so that subscribers configured that way still match.
 Cost
     Meshing runs in a process at nice 19 (`BackgroundMesher`): the node's process only takes the map snapshot and
     writes the message bytes. Each job meshes for at most `mesh_time_budget` seconds (dirty blocks first), so the
@@ -33,6 +37,8 @@ from eslam_ros.mesh_markers import TriangleBlock, serialize_block_markers
 
 # Seconds between two looks at the mesh process (its results, new subscribers, the next job).
 MESH_POLL_S = 0.2
+# Every this many messages one carries every block (see "Late subscribers").
+FULL_EVERY = 10
 NAMESPACE = "eslam_mesh"
 
 
@@ -41,7 +47,7 @@ class MeshFigures:
     """What ~/status reports about the mesh (the `mesh_` prefix is added there)."""
 
     publications: int = 0  # messages on ~/mesh
-    full_publications: int = 0  # of them: every block, for a new subscriber
+    full_publications: int = 0  # of them: every block (a new subscriber, every FULL_EVERY-th, at rest)
     blocks: int = 0  # blocks with surface, as published
     triangles: int = 0  # triangles of those blocks, as published (after thinning)
     blocks_sent_last: int = 0  # added or replaced by the last message
@@ -62,9 +68,13 @@ class MeshPublication:
 
     def __init__(self, publish: Callable[[bytes], None], frame_id: str, now: Callable[[], Any], logger: Any, *,
                  resolution: float, block_size: float, period: float, budget_s: float, triangle_budget: int,
-                 nice: int = 19) -> None:
+                 nice: int = 19, full_every: int = FULL_EVERY, rest_s: Optional[float] = None) -> None:
         self._publish, self.frame_id, self._now, self.log = publish, frame_id, now, logger
         self.period = period
+        self.full_every = full_every
+        self.rest_s = max(2 * period, 2.0) if rest_s is None else rest_s
+        self._since_full = 0  # messages since the last full one
+        self._last_sent = -float("inf")
         self.mesher = BackgroundMesher(resolution, block_size, budget_s, triangle_budget, nice)
         self.figures = MeshFigures()
         self._blocks: dict[tuple, TriangleBlock] = {}  # what subscribers have
@@ -90,6 +100,7 @@ class MeshPublication:
             self.figures.blocks = self.figures.triangles = self.figures.blocks_pending = 0
             self._publish(serialize_block_markers({}, [], self.frame_id, self._now(), NAMESPACE, delete_all=True))
             self.figures.publications += 1
+            self._since_full = 0  # an empty map, completely described
 
     def close(self) -> None:
         with self._lock:
@@ -113,7 +124,9 @@ class MeshPublication:
                 return
             if update is not None:
                 self._apply(update)
-            if self._full_wanted:
+            resting = (self._since_full and not self.mesher.busy and not self.mesher.pending
+                       and time.monotonic() - self._last_sent >= self.rest_s)
+            if self._full_wanted or resting:
                 self._full_wanted = False
                 if self._blocks:
                     self._send(self._blocks, [], full=True)
@@ -168,7 +181,8 @@ class MeshPublication:
         self._blocks.update(changed)
         f.blocks, f.triangles = update.blocks, update.triangles
         if changed or removed:
-            self._send(changed, removed, full=False)
+            full = self._since_full + 1 >= self.full_every
+            self._send(self._blocks if full else changed, removed, full)
 
     def _send(self, blocks: dict, removed: list, full: bool) -> None:
         start = time.monotonic()
@@ -178,6 +192,8 @@ class MeshPublication:
         f.full_publications += int(full)
         f.blocks_sent_last, f.blocks_deleted_last = len(blocks), len(removed)
         f.publish_ms_last = 1000 * (time.monotonic() - start)
+        self._since_full = 0 if full else self._since_full + 1
+        self._last_sent = time.monotonic()
 
     def _restart(self, message: str) -> None:
         """The mesh process died: a fresh one rebuilds every block, so subscribers drop theirs first."""
@@ -189,6 +205,7 @@ class MeshPublication:
         self.figures.blocks = self.figures.triangles = self.figures.blocks_pending = 0
         self._publish(serialize_block_markers({}, [], self.frame_id, self._now(), NAMESPACE, delete_all=True))
         self.figures.publications += 1
+        self._since_full = 0
 
     def status(self) -> dict[str, Any]:
         """The figures for ~/status, named `mesh_<figure>` (and the older `meshes_published`, `mesh_triangles`)."""

@@ -100,7 +100,7 @@ def test_only_changed_blocks_are_sent_and_a_late_subscriber_gets_them_all(ros):
                                           event_callbacks=PublisherEventCallbacks(matched=matched))
     publication = MeshPublication(publisher.publish, "map", lambda: pub_node.get_clock().now().to_msg(),
                                   pub_node.get_logger(), resolution=RES, block_size=BLOCK, period=0.0, budget_s=1e9,
-                                  triangle_budget=10**6)
+                                  triangle_budget=10**6, rest_s=1e9)
     viewer = Viewer(sub_node)
 
     def spin_until(condition, timeout=60.0):
@@ -146,12 +146,23 @@ def test_only_changed_blocks_are_sent_and_a_late_subscriber_gets_them_all(ros):
         assert publication.status()["mesh_full_publications"] == 1
         assert all(len(late.markers[i].points) == len(viewer.markers[i].points) for i in viewer.markers)
 
+        # The ball comes back (a delta), then nothing changes: once at rest, every block in one message, so that
+        # the last message (what transient local keeps, what a bridge caches for its next client) is complete.
+        back = publish_map(4, [BALL, SMALL])
+        assert [(m.action, m.id) for m in back.markers] == [(Marker.ADD, small_id)]
+        publication.rest_s = 0.0
+        assert spin_until(lambda: publication.step(4, lambda have: None) or len(viewer.messages) > 5)
+        assert {m.id for m in viewer.messages[-1].markers} == set(viewer.markers) == set(before)
+        assert publication.status()["mesh_full_publications"] == 2
+        spin_until(lambda: publication.step(4, lambda have: None), timeout=0.5)
+        assert len(viewer.messages) == 6  # once
+
         # A reset: one DELETEALL, and every viewer is empty.
         publication.reset()
         assert spin_until(lambda: not viewer.markers and not late.markers)
         assert [m.action for m in viewer.messages[-1].markers] == [Marker.DELETEALL]
         status = publication.status()
-        assert status["meshes_published"] == 5 and status["mesh_blocks"] == 0 and status["mesh_job_cpu_ms_last"] > 0
+        assert status["meshes_published"] == 7 and status["mesh_blocks"] == 0 and status["mesh_job_cpu_ms_last"] > 0
     finally:
         publication.close()
         pub_node.destroy_node()
