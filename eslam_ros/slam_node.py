@@ -348,7 +348,11 @@ def odometry(pose: np.ndarray, twist: tuple[np.ndarray, np.ndarray], stamp: Any,
 def path_message(timestamps: np.ndarray, poses: np.ndarray, frame_id: str) -> PathMsg:
     msg = PathMsg()
     msg.header.frame_id = frame_id
-    msg.poses = [pose_stamped(pose, sec_to_stamp(t), frame_id) for t, pose in zip(timestamps, poses)]
+    for t, pose in zip(timestamps, poses):
+        try:
+            msg.poses.append(pose_stamped(pose, sec_to_stamp(t), frame_id))
+        except InvalidPoseError:  # not a rotation: left out (counted as poses_invalid when it was tracked)
+            continue
     if len(msg.poses):
         msg.header.stamp = msg.poses[-1].header.stamp
     return msg

@@ -279,6 +279,14 @@ def test_published_poses_stay_orthonormal_over_10000_composed_updates():
     np.testing.assert_allclose(back[:3, :3], Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix(), atol=1e-9)
 
 
+def test_a_path_with_a_broken_pose_still_carries_the_others():
+    from eslam_ros.slam_node import path_message
+
+    poses = np.stack([np.eye(4), np.diag([2.0, 2.0, 2.0, 1.0]), np.eye(4)])  # the middle one is no rotation
+    path = path_message(np.array([1.0, 2.0, 3.0]), poses, "map")
+    assert [p.header.stamp.sec for p in path.poses] == [1, 3] and path.header.stamp.sec == 3
+
+
 def test_stamps_round_trip_to_the_nanosecond():
     assert (sec_to_stamp(1.5).sec, sec_to_stamp(1.5).nanosec) == (1, 500_000_000)
     assert (sec_to_stamp(-0.25).sec, sec_to_stamp(-0.25).nanosec) == (-1, 750_000_000)
