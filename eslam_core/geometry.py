@@ -41,7 +41,7 @@ def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
     )
     diag = torch.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], -1)
     best = diag.argmax(-1)
-    q = cands[torch.arange(len(m)), best]
+    q = cands[torch.arange(len(m), device=m.device), best]
     q = q / q.norm(dim=-1, keepdim=True)
     q = torch.where(q[:, :1] < 0, -q, q)
     return q.reshape(R.shape[:-2] + (4,))

@@ -4,7 +4,8 @@ The kernels are compiled for this machine's CPU (-march=native: 10-30 % faster t
 so the shared library is cached in $ESLAM_CACHE (default ~/.cache/eslam) under a hash of the source, the flags and
 the CPU's instruction-set flags: a cache shared by different machines never hands one a library it cannot run.
 Without a compiler, or with ESLAM_NATIVE=0, callers fall back to the pure-torch reference implementations (slower,
-same results).
+same results). The kernels serve CPU tensors only: on a GPU the torch implementations run (`kernel_status` says
+which is in use and why, for `eslam doctor`).
 """
 from __future__ import annotations
 
@@ -56,18 +57,37 @@ def _compile(src: Path, out: Path) -> None:
         os.replace(tmp_out, out)  # atomic: concurrent builders never load a half-written library
 
 
+_unavailable: dict[str, str] = {}  # kernel name -> why load_kernel returned None
+
+
+def library_path(name: str) -> Path:
+    """Where the library of kernels/<name>.c built for this machine is cached."""
+    src = KERNEL_DIR / f"{name}.c"
+    digest = hashlib.sha256(src.read_bytes() + " ".join(CFLAGS).encode() + cpu_identity().encode()).hexdigest()[:16]
+    return cache_dir() / f"{name}-{digest}.so"
+
+
 @lru_cache(maxsize=None)
 def load_kernel(name: str) -> Optional[ctypes.CDLL]:
     """The compiled library of kernels/<name>.c, or None (logged once) when it cannot be built."""
     if os.environ.get("ESLAM_NATIVE", "1") == "0":
+        _unavailable[name] = "switched off by ESLAM_NATIVE=0"
         return None
-    src = KERNEL_DIR / f"{name}.c"
-    digest = hashlib.sha256(src.read_bytes() + " ".join(CFLAGS).encode() + cpu_identity().encode()).hexdigest()[:16]
-    lib_path = cache_dir() / f"{name}-{digest}.so"
+    lib_path = library_path(name)
     try:
         if not lib_path.exists():
-            _compile(src, lib_path)
+            _compile(KERNEL_DIR / f"{name}.c", lib_path)
         return ctypes.CDLL(str(lib_path))
     except (OSError, RuntimeError) as e:
+        _unavailable[name] = str(e).strip().splitlines()[0]
         log.warning("native kernel %s unavailable, using the slower torch implementation: %s", name, e)
         return None
+
+
+def kernel_status(name: str) -> tuple[bool, str]:
+    """(compiled, detail): the library's path, or why the torch implementation is used instead (builds the
+    kernel if it is not cached yet)."""
+    lib = load_kernel(name)
+    if lib is not None:
+        return True, str(library_path(name))
+    return False, _unavailable.get(name, "unavailable")

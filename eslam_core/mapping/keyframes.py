@@ -44,10 +44,12 @@ class Keyframe:
     @staticmethod
     def from_tensors(frame_index: int, timestamp: float, rgb: torch.Tensor, depth: torch.Tensor,
                      usable: torch.Tensor, pose: torch.Tensor, number: int = 0) -> "Keyframe":
-        rgb8 = (rgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8)
+        """A keyframe in host memory (whatever device the tensors come from: the store grows with time, the
+        device's memory is for the map; mapping sends the rays it draws)."""
+        rgb8 = (rgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).cpu()
         d = torch.where(depth < DEPTH_MAX, depth, torch.zeros_like(depth))
-        d16 = (d / DEPTH_STEP + 0.5).to(torch.int32).to(torch.int16)  # stores uint16 bits in int16
-        return Keyframe(frame_index, timestamp, rgb8, d16, usable.clone(), pose.detach().clone(), number)
+        d16 = (d / DEPTH_STEP + 0.5).to(torch.int32).to(torch.int16).cpu()  # stores uint16 bits in int16
+        return Keyframe(frame_index, timestamp, rgb8, d16, usable.cpu().clone(), pose.detach().cpu().clone(), number)
 
     def reduced(self) -> "Keyframe":
         s, o = REDUCED_STRIDE, REDUCED_STRIDE // 2

@@ -3,6 +3,10 @@
 Rays are drawn equally from every window frame. Window poses are optimised once `joint_poses_after` keyframes
 exist, the oldest frame of the window held fixed (it anchors the gauge). The first frame is mapped alone with its
 pose fixed, for more iterations at a higher learning rate.
+
+Mapping runs on the field's device. Keyframes stay in host memory: each iteration draws its pixels there and sends
+only the drawn rays' pixels, depths and colours (one batch, without waiting for the device); the refined poses and
+the loss come back once, at the end of the step.
 """
 from __future__ import annotations
 
@@ -13,6 +17,7 @@ import torch
 
 from eslam_core.config import Config
 from eslam_core.cpu import denormals_flushed
+from eslam_core.device import upload
 from eslam_core.representation.field import SceneField
 from eslam_core.frames import border_mask
 from eslam_core.geometry import params_to_pose, pose_to_params
@@ -30,9 +35,13 @@ class MappingResult:
 class Mapper:
     def __init__(self, cfg: Config, dirs_cam: torch.Tensor, height: int, width: int):
         self.cfg = cfg
-        self.dirs_cam = dirs_cam
+        self.dirs_cam = dirs_cam  # on the field's device once mapping starts (see _on)
         self.width = width
-        self.border = border_mask(height, width, cfg.mapping.border).reshape(-1)
+        self.border = border_mask(height, width, cfg.mapping.border).reshape(-1)  # host: pixels are drawn there
+
+    def _on(self, device: torch.device) -> None:
+        if self.dirs_cam.device != device:
+            self.dirs_cam = self.dirs_cam.to(device)
 
     def _pixels(self, kf: Keyframe, n: int) -> torch.Tensor:
         """n pixels (indices into the keyframe's stored images) drawn uniformly (with replacement) from its usable
@@ -55,11 +64,14 @@ class Mapper:
         """`stop_early(iterations done)`, asked after every iteration, may end the step before its iteration count
         (the pipelined mapper does when it falls behind the tracker)."""
         mc = self.cfg.mapping
+        device = field.device
+        self._on(device)
         iterations = mc.first_iterations if first else mc.iterations
         lr_factor = mc.first_lr_factor if first else 1.0
         oldest = min(window, key=lambda i: keyframes[i].frame_index)
         free = [i for i in window if optimise_poses and i != oldest]
-        pose_params = {i: [p.requires_grad_(True) for p in pose_to_params(keyframes[i].pose)] for i in free}
+        poses = {i: keyframes[i].pose.to(device) for i in window}
+        pose_params = {i: [p.requires_grad_(True) for p in pose_to_params(poses[i])] for i in free}
         groups = [{"params": field.decoder_parameters(), "lr": mc.lr_decoders * lr_factor},
                   {"params": field.plane_parameters(), "lr": mc.lr_planes * lr_factor}]
         if pose_params:
@@ -67,30 +79,39 @@ class Mapper:
         # The fused kernel does the whole update in one pass over the millions of plane values (~8x faster on CPU).
         optim = torch.optim.Adam(groups, betas=(0.9, 0.999), fused=True)
         per_frame = max(1, mc.rays // len(window))
-        loss_value = float("nan")
+        last_loss = None
         for it in range(iterations):
             if it > 0 and stop_early is not None and stop_early(it):
                 break
-            origins, dirs, d_gt, rgb_gt = [], [], [], []
+            drawn, frame_pix, d_gt, rgb_gt = [], [], [], []  # host: (window position, pixels) per frame
             for i in window:
                 kf = keyframes[i]
                 pix = self._pixels(kf, per_frame)
                 if len(pix) == 0:
                     continue
-                c2w = params_to_pose(*pose_params[i]) if i in pose_params else kf.pose
-                dirs.append(self.dirs_cam[kf.frame_pixels(pix, self.width)] @ c2w[:3, :3].T)
-                origins.append(c2w[:3, 3].expand(len(pix), 3))
+                drawn.append((i, len(pix)))
+                frame_pix.append(kf.frame_pixels(pix, self.width))
                 d_gt.append(kf.depths(pix))
                 rgb_gt.append(kf.colors(pix))
-            if not dirs:
+            if not drawn:
                 break
-            d_gt_all = torch.cat(d_gt)
+            d_gt_host = torch.cat(d_gt)
+            all_depth = bool((d_gt_host > 0).all())  # known here, so the renderer need not ask the device
+            counts = [n for _, n in drawn]
+            rays_dirs = self.dirs_cam[upload(torch.cat(frame_pix), device)].split(counts)
+            origins, dirs = [], []
+            for (i, n), dirs_cam in zip(drawn, rays_dirs):
+                c2w = params_to_pose(*pose_params[i]) if i in pose_params else poses[i]
+                dirs.append(dirs_cam @ c2w[:3, :3].T)
+                origins.append(c2w[:3, 3].expand(n, 3))
+            d_gt_all = upload(d_gt_host, device)
             out = render_rays(field, torch.cat(origins), torch.cat(dirs), d_gt_all, self.cfg.render,
-                              self.cfg.model.truncation)
-            loss = eslam_losses(out, d_gt_all, torch.cat(rgb_gt), self.cfg.model.truncation).total(mc.weights)
+                              self.cfg.model.truncation, all_depth)
+            loss = eslam_losses(out, d_gt_all, upload(torch.cat(rgb_gt), device), self.cfg.model.truncation
+                                ).total(mc.weights)
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
-            loss_value = loss.item()
-        refined = {i: params_to_pose(*pose_params[i]).detach() for i in free}
-        return MappingResult(loss_value, refined)
+            last_loss = loss.detach()
+        refined = {i: params_to_pose(*pose_params[i]).detach().cpu() for i in free}
+        return MappingResult(float("nan") if last_loss is None else float(last_loss), refined)

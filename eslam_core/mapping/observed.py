@@ -5,6 +5,9 @@ give, often a small value that looks like a surface. The fast SDF tracker aligns
 on geometry the map has not seen yet (a wall coming into view) would pull the pose towards that fake surface. The
 tracker therefore uses only points inside observed space. The grid is coarse (one truncation per voxel, grown by
 one voxel), so keyframe pose refinements of a few centimetres do not matter.
+
+The grid lives on the map's device (the trackers ask it about their points every frame); points to add may come
+from the host (keyframes are kept there).
 """
 from __future__ import annotations
 
@@ -15,43 +18,48 @@ import torch
 
 
 class ObservedSpace:
-    def __init__(self, bound: np.ndarray, voxel: float):
-        self.origin = torch.tensor(bound[0], dtype=torch.float32)
+    def __init__(self, bound: np.ndarray, voxel: float, device: torch.device | str | None = None):
+        self.origin = torch.tensor(bound[0], dtype=torch.float32, device=device)
         self.voxel = voxel
         self.shape = tuple(int(n) for n in np.ceil((bound[1] - bound[0]) / voxel - 1e-6))
-        self.seen = torch.zeros(self.shape, dtype=torch.bool)
+        self._shape = torch.tensor(self.shape, device=device)
+        self.seen = torch.zeros(self.shape, dtype=torch.bool, device=device)
         self._near: torch.Tensor | None = None  # `seen` grown by one voxel, computed when first needed
+
+    @property
+    def device(self) -> torch.device:
+        return self.seen.device
 
     def grown(self, bound: np.ndarray) -> "ObservedSpace":
         """The same observed voxels in a grid over a larger bound (aligned to this grid's voxels)."""
-        origin = self.origin.double().numpy()
+        origin = self.origin.double().cpu().numpy()
         shift = np.ceil((origin - bound[0]) / self.voxel - 1e-6).astype(int).clip(min=0)
-        new = ObservedSpace(np.stack([origin - shift * self.voxel, bound[1]]), self.voxel)
+        new = ObservedSpace(np.stack([origin - shift * self.voxel, bound[1]]), self.voxel, self.device)
         i, j, k = shift
         new.seen[i: i + self.shape[0], j: j + self.shape[1], k: k + self.shape[2]] = self.seen
         return new
 
     def _voxels(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         ijk = torch.floor((points - self.origin) / self.voxel).long()
-        inside = ((ijk >= 0) & (ijk < torch.tensor(self.shape))).all(-1)
+        inside = ((ijk >= 0) & (ijk < self._shape)).all(-1)
         return ijk, inside
 
     def add(self, points: torch.Tensor) -> None:
-        """Mark the voxels holding these surface points (world frame, (N, 3))."""
-        ijk, inside = self._voxels(points)
+        """Mark the voxels holding these surface points (world frame, (N, 3), any device)."""
+        ijk, inside = self._voxels(points.to(self.device))
         ijk = ijk[inside]
         self.seen[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
         self._near = None
 
     def contains(self, points: torch.Tensor) -> torch.Tensor:
-        """(N,) bool: the point lies within about a voxel of observed surface."""
+        """(N,) bool on the grid's device: the point lies within about a voxel of observed surface."""
         if self._near is None:
             self._near = grow_by_one_voxel(self.seen)
-        ijk, inside = self._voxels(points)
-        result = torch.zeros(len(points), dtype=torch.bool)
-        ijk = ijk[inside]
-        result[inside] = self._near[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
-        return result
+        ijk, inside = self._voxels(points.to(self.device))
+        # Every point reads a voxel (outside ones a clamped one, then masked): no selection whose size the host
+        # would have to wait for.
+        ijk = torch.minimum(ijk.clamp_min(0), self._shape - 1)
+        return self._near[ijk[:, 0], ijk[:, 1], ijk[:, 2]] & inside
 
 
 def grow_by_one_voxel(grid: torch.Tensor) -> torch.Tensor:
@@ -72,8 +80,8 @@ class ObservedSurfaces:
     mapping step shares the rays with the whole window and leaves space seen for the first time rough: a keyframe
     joins after the step that follows its own; the first one after its warm-up."""
 
-    def __init__(self, bound: np.ndarray, voxel: float):
-        self.space = ObservedSpace(bound, voxel)
+    def __init__(self, bound: np.ndarray, voxel: float, device: torch.device | str | None = None):
+        self.space = ObservedSpace(bound, voxel, device)
         self.pending: deque = deque()  # surface points of keyframes not joined yet, oldest first
         self.joined = 0
 

@@ -36,10 +36,16 @@ def render_weights(alpha: torch.Tensor) -> torch.Tensor:
 
 
 def sample_depths(field: RadianceField, origins: torch.Tensor, dirs: torch.Tensor, depth_gt: torch.Tensor,
-                  cfg: RenderConfig, truncation: float) -> torch.Tensor:
-    """Sorted sample depths (R, N_strat + N_imp): stratified plus near-surface (with depth) or importance samples."""
+                  cfg: RenderConfig, truncation: float, all_depth: bool | None = None) -> torch.Tensor:
+    """Sorted sample depths (R, N_strat + N_imp): stratified plus near-surface (with depth) or importance samples.
+
+    `all_depth`: whether every ray has depth, when the caller knows it on the host; asking the tensor instead
+    makes the host wait for the device's queued work (a GPU run's tracking and mapping iterations would).
+    """
     has_depth = depth_gt > 0
-    if has_depth.all():
+    if all_depth is None:
+        all_depth = bool(has_depth.all())
+    if all_depth:
         far = cfg.depth_far_factor * depth_gt
     else:
         bmin, bmax = field.bound_min, field.bound_max
@@ -49,7 +55,7 @@ def sample_depths(field: RadianceField, origins: torch.Tensor, dirs: torch.Tenso
     if cfg.n_importance == 0:
         return z
     z_extra = near_surface(depth_gt, cfg.n_importance, cfg.surface_band * truncation)
-    if not has_depth.all():
+    if not all_depth:
         missing = ~has_depth
         with torch.no_grad():
             o, d, zs = origins[missing], dirs[missing], z[missing]
@@ -61,9 +67,10 @@ def sample_depths(field: RadianceField, origins: torch.Tensor, dirs: torch.Tenso
 
 
 def render_rays(field: RadianceField, origins: torch.Tensor, dirs: torch.Tensor, depth_gt: torch.Tensor,
-                cfg: RenderConfig, truncation: float) -> RenderOutput:
-    """Render depth and colour of rays (R,3) origins / directions with planar-unit directions."""
-    z = sample_depths(field, origins.detach(), dirs.detach(), depth_gt, cfg, truncation)
+                cfg: RenderConfig, truncation: float, all_depth: bool | None = None) -> RenderOutput:
+    """Render depth and colour of rays (R,3) origins / directions with planar-unit directions (on the field's
+    device). `all_depth`: see sample_depths."""
+    z = sample_depths(field, origins.detach(), dirs.detach(), depth_gt, cfg, truncation, all_depth)
     points = origins[:, None, :] + z[..., None] * dirs[:, None, :]
     flat = points.reshape(-1, 3)
     sdf = field.sdf(flat).reshape(z.shape)

@@ -2,6 +2,8 @@
 
 phi_g(p) = h_g(f_g(p)) is the TSDF (positive in free space, 1 at the truncation distance), phi_a(p) = h_a(f_a(p))
 the raw colour. `beta` is the learnable sharpness of the SDF-to-density conversion used by the renderer.
+
+A field lives on one device (`run.device`); it takes query points from anywhere and answers on its own device.
 """
 from __future__ import annotations
 
@@ -30,17 +32,23 @@ class RadianceField(Protocol):
 
 
 class SceneField(nn.Module):
-    def __init__(self, bound: np.ndarray, cfg: ModelConfig):
+    def __init__(self, bound: np.ndarray, cfg: ModelConfig, device: torch.device | str | None = None):
         super().__init__()
         self.bound = np.asarray(bound, dtype=np.float64)
-        self.geometry_planes = FeaturePlanes(
-            self.bound, (cfg.coarse_resolution, cfg.fine_geometry_resolution), cfg.channels, cfg.plane_init_std)
-        self.appearance_planes = FeaturePlanes(
-            self.bound, (cfg.coarse_resolution, cfg.fine_appearance_resolution), cfg.channels, cfg.plane_init_std)
-        self.geometry_decoder = Decoder(self.geometry_planes.out_dim, cfg.decoder_hidden, cfg.decoder_layers, 1, "tanh")
+        self.geometry_planes = FeaturePlanes(self.bound, (cfg.coarse_resolution, cfg.fine_geometry_resolution),
+                                             cfg.channels, cfg.plane_init_std, device)
+        self.appearance_planes = FeaturePlanes(self.bound, (cfg.coarse_resolution, cfg.fine_appearance_resolution),
+                                               cfg.channels, cfg.plane_init_std, device)
+        # Initialised on the host (as the planes): the same seed gives the same decoders on any device.
+        self.geometry_decoder = Decoder(self.geometry_planes.out_dim, cfg.decoder_hidden, cfg.decoder_layers, 1,
+                                        "tanh").to(device)
         self.appearance_decoder = Decoder(
-            self.appearance_planes.out_dim, cfg.decoder_hidden, cfg.decoder_layers, 3, "sigmoid")
-        self.beta = nn.Parameter(torch.tensor(float(cfg.beta_init)), requires_grad=cfg.learn_beta)
+            self.appearance_planes.out_dim, cfg.decoder_hidden, cfg.decoder_layers, 3, "sigmoid").to(device)
+        self.beta = nn.Parameter(torch.tensor(float(cfg.beta_init), device=device), requires_grad=cfg.learn_beta)
+
+    @property
+    def device(self) -> torch.device:
+        return self.geometry_planes.table.device
 
     @property
     def bound_min(self) -> torch.Tensor:
@@ -52,11 +60,11 @@ class SceneField(nn.Module):
 
     def sdf(self, points: torch.Tensor) -> torch.Tensor:
         """(N, 3) -> (N,) normalised TSDF."""
-        return self.geometry_decoder(self.geometry_planes(points)).squeeze(-1)
+        return self.geometry_decoder(self.geometry_planes(points.to(self.device))).squeeze(-1)
 
     def color(self, points: torch.Tensor) -> torch.Tensor:
         """(N, 3) -> (N, 3) raw colour in [0, 1]."""
-        return self.appearance_decoder(self.appearance_planes(points))
+        return self.appearance_decoder(self.appearance_planes(points.to(self.device)))
 
     def forward(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.sdf(points), self.color(points)

@@ -8,7 +8,8 @@ All six planes of a field are stored as one table of feature rows (one row per p
 The lookup equals grid_sample with align_corners=True and border padding on each plane. It runs as one fused C
 kernel (kernels/plane_lookup.c) whose backward gives the gradients of the table and of the point positions (which
 tracking needs). `reference_lookup` is the same computation in plain torch (an `embedding_bag` over bags of 3 planes
-x 4 bilinear corners): the fallback without a C compiler, and the reference the kernel is tested against.
+x 4 bilinear corners): the fallback without a C compiler, the reference the kernel is tested against, and the path
+on a GPU (the kernel serves CPU tensors only).
 """
 from __future__ import annotations
 
@@ -50,15 +51,18 @@ class PlaneLayout:
 
 
 def bilinear_bags(points: torch.Tensor, bound_min: torch.Tensor, bound_extent: torch.Tensor,
-                  layout: PlaneLayout) -> tuple[torch.Tensor, torch.Tensor]:
+                  layout: PlaneLayout, grid_sizes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Table rows and bilinear weights of every point: (N * scales, 12) indices and weights.
 
     Coordinates are clamped to the bound (border padding), so points outside read the border features.
+    `grid_sizes`: layout.sizes as a (scales, 3) tensor on the points' device, if the caller keeps one (made here
+    otherwise: on a GPU that is a host-to-device copy, which waits for the queued work).
     """
     unit = ((points - bound_min) / bound_extent).clamp(0.0, 1.0)  # (N, 3) in [0, 1]
+    if grid_sizes is None:
+        grid_sizes = torch.tensor(layout.sizes, dtype=points.dtype, device=points.device)
     all_idx, all_w = [], []
-    for n, offsets in zip(layout.sizes, layout.offsets):
-        sizes = torch.tensor(n, dtype=points.dtype, device=points.device)
+    for n, offsets, sizes in zip(layout.sizes, layout.offsets, grid_sizes.to(points.dtype)):
         g = unit * (sizes - 1)  # grid coordinates, align_corners=True
         base = torch.minimum(g.detach().floor(), sizes - 2)  # lower corner; keeps the upper corner in range
         frac = g - base  # differentiable in the point position
@@ -80,9 +84,9 @@ def bilinear_bags(points: torch.Tensor, bound_min: torch.Tensor, bound_extent: t
 
 
 def reference_lookup(points: torch.Tensor, table: torch.Tensor, bound_min: torch.Tensor, bound_extent: torch.Tensor,
-                     layout: PlaneLayout) -> torch.Tensor:
-    """(N, 3) points -> (N, scales * channels) features, in plain torch."""
-    idx, w = bilinear_bags(points, bound_min, bound_extent, layout)
+                     layout: PlaneLayout, grid_sizes: torch.Tensor | None = None) -> torch.Tensor:
+    """(N, 3) points -> (N, scales * channels) features, in plain torch (any device)."""
+    idx, w = bilinear_bags(points, bound_min, bound_extent, layout, grid_sizes)
     return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum").reshape(len(points), -1)
 
 
@@ -129,15 +133,21 @@ class _FusedLookup(torch.autograd.Function):
 class FeaturePlanes(nn.Module):
     """The coarse and fine xy / xz / yz planes of one field, as a single table of feature rows."""
 
-    def __init__(self, bound: np.ndarray, resolutions: tuple[float, ...], channels: int, init_std: float):
+    def __init__(self, bound: np.ndarray, resolutions: tuple[float, ...], channels: int, init_std: float,
+                 device: torch.device | str | None = None):
         super().__init__()
         self.layout = PlaneLayout.for_bound(bound, resolutions)
         self.resolutions = tuple(resolutions)
         self.channels = channels
         self.init_std = init_std
-        self.table = nn.Parameter(torch.randn(self.layout.rows, channels) * init_std)
-        self.register_buffer("bound_min", torch.tensor(bound[0], dtype=torch.float32))
-        self.register_buffer("bound_extent", torch.tensor(bound[1] - bound[0], dtype=torch.float32))
+        # Drawn on the host whatever the device: the same seed gives the same initial map on a CPU and a GPU.
+        self.table = nn.Parameter((torch.randn(self.layout.rows, channels) * init_std).to(device))
+        self.register_buffer("bound_min", torch.tensor(bound[0], dtype=torch.float32, device=device))
+        self.register_buffer("bound_extent", torch.tensor(bound[1] - bound[0], dtype=torch.float32, device=device))
+        # The grid sizes on the planes' device for the torch path (not part of the map's state: the layout is).
+        self.register_buffer("grid_sizes", torch.tensor(self.layout.sizes, dtype=torch.float32, device=device),
+                             persistent=False)
+        # The C kernel's arguments (host memory: the kernel serves CPU tensors only).
         self._sizes = torch.tensor([v for n in self.layout.sizes for v in n], dtype=torch.int64)
         self._offsets = torch.tensor([v for o in self.layout.offsets for v in o], dtype=torch.int64)
         self.use_native = True
@@ -152,9 +162,11 @@ class FeaturePlanes(nn.Module):
 
     def lookup(self, points: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
         """The lookup on any table of this layout (rows, any number of channels): (N, scales * table channels)."""
-        lib = load_kernel("plane_lookup") if self.use_native else None
-        if lib is None or points.dtype != torch.float32 or table.dtype != torch.float32:
-            return reference_lookup(points, table, self.bound_min, self.bound_extent, self.layout)
+        native = self.use_native and points.device.type == "cpu" and table.device.type == "cpu" and \
+            points.dtype == torch.float32 and table.dtype == torch.float32
+        lib = load_kernel("plane_lookup") if native else None
+        if lib is None:
+            return reference_lookup(points, table, self.bound_min, self.bound_extent, self.layout, self.grid_sizes)
         return _FusedLookup.apply(points, table, self._sizes, self._offsets, self.bound_min, self.bound_extent, lib)
 
     def project(self, weight: torch.Tensor) -> torch.Tensor:
@@ -167,8 +179,8 @@ class FeaturePlanes(nn.Module):
     def grown(self, bound: np.ndarray) -> "FeaturePlanes":
         """The planes over a larger `bound` whose grid points include this one's (grown by whole cells of every
         scale): existing features stay where they are in the world, new cells are initialised as at creation."""
-        old_min = self.bound_min.double().numpy()
-        new = FeaturePlanes(bound, self.resolutions, self.channels, self.init_std)
+        old_min = self.bound_min.double().cpu().numpy()
+        new = FeaturePlanes(bound, self.resolutions, self.channels, self.init_std, device=self.table.device)
         with torch.no_grad():
             for s, res in enumerate(self.resolutions):
                 shift = np.round((old_min - np.asarray(bound[0])) / res).astype(int)

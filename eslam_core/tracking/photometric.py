@@ -18,11 +18,20 @@ import torch.nn.functional as F
 from eslam_core.camera import Intrinsics
 
 GREY = torch.tensor([0.299, 0.587, 0.114])
+_GREY_ON: dict = {}  # device -> GREY there (copied once: a copy per call would make the host wait for a GPU)
+
+
+def to_grey(rgb: torch.Tensor) -> torch.Tensor:
+    """(..., 3) colour -> (...) grey level, on the colour's device."""
+    weights = _GREY_ON.get(rgb.device)
+    if weights is None:
+        weights = _GREY_ON[rgb.device] = GREY.to(rgb.device)
+    return rgb @ weights
 
 
 def grey_pyramid(rgb: torch.Tensor, levels: int) -> list[torch.Tensor]:
     """(H, W, 3) colour in [0, 1] -> grey images, full resolution first, each next one half the size."""
-    grey = (rgb @ GREY)[None, None]
+    grey = to_grey(rgb)[None, None]
     pyramid = [grey]
     for _ in range(levels - 1):
         if min(grey.shape[-2:]) < 8:

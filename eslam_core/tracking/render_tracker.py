@@ -4,6 +4,9 @@ Translation and quaternion are optimised with Adam on ESLAM's loss (tracking wei
 velocity prediction. Each iteration renders rays from random pixels with depth inside the image border, drops rays
 whose depth error exceeds `outlier_factor` times the batch median, and the pose with the lowest loss over all
 iterations is kept, not the last one.
+
+The tracker works on the device of the map it is given: the frame and the prediction come from the host and move
+there once per frame, the best pose and loss are kept there (no host round trip per iteration) and come back once.
 """
 from __future__ import annotations
 
@@ -66,45 +69,60 @@ class Tracker:
         self.dirs_cam = dirs_cam  # (H*W, 3)
         self.border = border_mask(height, width, cfg.tracking.border).reshape(-1)
 
+    def _on(self, device: torch.device) -> None:
+        """Keep the per-camera tables on the map's device (moved once)."""
+        if self.dirs_cam.device != device:
+            self.dirs_cam, self.border = self.dirs_cam.to(device), self.border.to(device)
+
     @denormals_flushed()  # see cpu.py
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
               usable: torch.Tensor | None = None, observed: ObservedSpace | None = None,
               keyframe: Keyframe | None = None) -> TrackingResult:
         """`observed` restricts the rays with `tracking.observed_only` (otherwise, as in the paper and the official
-        code, any pixel with depth may be drawn); `keyframe` is not used."""
+        code, any pixel with depth may be drawn); `keyframe` is not used. Inputs and the result are host tensors;
+        the work runs on the field's device."""
         tc = self.cfg.tracking
-        valid = self.border & (frame.depth.reshape(-1) > 0)
+        device = field.device
+        self._on(device)
+        rgb, depth = frame.rgb.to(device).reshape(-1, 3), frame.depth.to(device).reshape(-1)
+        start = init_pose.to(device)
+        valid = self.border & (depth > 0)
         if usable is not None:
-            valid &= usable.reshape(-1)
+            valid &= usable.to(device).reshape(-1)
         candidates = torch.nonzero(valid).squeeze(1)
         if tc.observed_only and observed is not None:
-            candidates = self._in_observed_space(candidates, frame.depth.reshape(-1), init_pose, observed)
+            candidates = self._in_observed_space(candidates, depth, start, observed)
         depth_fraction = len(candidates) / max(int(self.border.sum()), 1)
         if len(candidates) < 10 or tc.iterations == 0:
             return TrackingResult(init_pose.clone(), float("nan"), len(candidates), depth_fraction)
-        t, q = pose_to_params(init_pose)
+        t, q = pose_to_params(start)
         t.requires_grad_(True)
         q.requires_grad_(True)
         optim = torch.optim.Adam([{"params": [t], "lr": tc.lr_translation}, {"params": [q], "lr": tc.lr_rotation}],
                                  betas=(0.5, 0.999))
-        rgb, depth = frame.rgb.reshape(-1, 3), frame.depth.reshape(-1)
-        best_loss, best_pose = float("inf"), init_pose.clone()
+        # The best iteration's pose, loss and inlier fraction, kept on the device (no host round trip per iteration).
+        best_pose = start.clone()
+        best_loss = torch.full((), float("inf"), device=device)
+        best_inliers = torch.full((), float("nan"), device=device)
         fixed = FrozenField(field)  # the map does not change while tracking
         for _ in range(tc.iterations):
-            pix = candidates[torch.randint(len(candidates), (tc.rays,))]
+            pix = candidates[torch.randint(len(candidates), (tc.rays,), device=device)]
             c2w = params_to_pose(t, q)
             origins, dirs = rays_to_world(self.dirs_cam[pix], c2w)
             d_gt = depth[pix]
-            out = render_rays(fixed, origins, dirs, d_gt, self.cfg.render, self.cfg.model.truncation)
-            keep = outlier_mask((out.depth.detach() - d_gt).abs(), tc.outlier_factor)
+            # Every candidate pixel has depth (all_depth: the renderer need not ask the device).
+            out = render_rays(fixed, origins, dirs, d_gt, self.cfg.render, self.cfg.model.truncation, all_depth=True)
+            error = (out.depth.detach() - d_gt).abs()
+            keep = outlier_mask(error, tc.outlier_factor)
             loss = eslam_losses(out, d_gt, rgb[pix], self.cfg.model.truncation, keep).total(tc.weights)
-            if loss.item() < best_loss:
-                best_loss, best_pose = loss.item(), c2w.detach().clone()
-                inliers = float(((out.depth.detach() - d_gt).abs() < self.cfg.model.truncation).float().mean())
+            better = loss.detach() < best_loss  # (a NaN loss is never better)
+            best_loss = torch.where(better, loss.detach(), best_loss)
+            best_pose = torch.where(better, c2w.detach(), best_pose)
+            best_inliers = torch.where(better, (error < self.cfg.model.truncation).float().mean(), best_inliers)
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
-        return TrackingResult(best_pose, best_loss, len(candidates), depth_fraction, inliers)
+        return TrackingResult(best_pose.cpu(), float(best_loss), len(candidates), depth_fraction, float(best_inliers))
 
     def _in_observed_space(self, candidates: torch.Tensor, depth: torch.Tensor, pose: torch.Tensor,
                            observed: ObservedSpace) -> torch.Tensor:

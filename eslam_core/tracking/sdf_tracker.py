@@ -19,6 +19,9 @@ Only points inside the truncation band (where the SDF has a gradient and the col
 residuals. The cost that picks the best pose counts every point, a saturated one at the largest penalty; otherwise a
 pose that pushed points out of the band (or out of the keyframe's view) would look good. Points on space no mapped
 keyframe has seen are left out (see observed.py).
+
+The alignment runs on the map's device, the small 6x6 systems included; the choice of the best pose and the stopping
+tests read a few numbers back per iteration (six iterations per frame), the pose comes back once.
 """
 from __future__ import annotations
 
@@ -31,20 +34,22 @@ from eslam_core.representation.field import FrozenField, RadianceField, SceneFie
 from eslam_core.frames import PreparedFrame, border_mask
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSpace
-from eslam_core.tracking.photometric import GREY, Reference, grey_pyramid, photometric_residuals, sample
+from eslam_core.tracking.photometric import Reference, grey_pyramid, photometric_residuals, sample, to_grey
 from eslam_core.tracking.render_tracker import TrackingResult
 
 SATURATED_COLOR = 3.0  # the colour penalty of a saturated point, in units of its Huber scale
+SATURATED_COST = SATURATED_COLOR - 0.5  # its Huber cost (huber_cost of SATURATED_COLOR)
 
 
 def so3_exp(w: torch.Tensor) -> torch.Tensor:
     """Rotation matrix of the rotation vector w (Rodrigues)."""
     theta = w.norm()
-    K = torch.zeros(3, 3, dtype=w.dtype)
+    K = torch.zeros(3, 3, dtype=w.dtype, device=w.device)
     K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -w[2], w[1], w[2], -w[0], -w[1], w[0]
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
     if theta < 1e-9:
-        return torch.eye(3, dtype=w.dtype) + K
-    return torch.eye(3, dtype=w.dtype) + torch.sin(theta) / theta * K + (1 - torch.cos(theta)) / theta**2 * K @ K
+        return eye + K
+    return eye + torch.sin(theta) / theta * K + (1 - torch.cos(theta)) / theta**2 * K @ K
 
 
 def huber_weights(r: torch.Tensor) -> torch.Tensor:
@@ -66,7 +71,7 @@ def field_residuals(field: RadianceField, x: torch.Tensor, truncation: float, wi
     (sdf_grad,) = torch.autograd.grad(sdf.sum(), x)
     if not with_color:
         return sdf.detach(), sdf_grad, None, None
-    grey = field.color(x) @ GREY
+    grey = to_grey(field.color(x))
     (grey_grad,) = torch.autograd.grad(grey.sum(), x)
     return sdf.detach(), sdf_grad, grey.detach(), grey_grad
 
@@ -96,17 +101,23 @@ class SDFTracker:
         self.border = border_mask(intr.height, intr.width, cfg.tracking.border).reshape(-1)
         self._reference: Reference | None = None
 
-    def reference(self, keyframe: Keyframe | None) -> Reference | None:
-        """The keyframe prepared for photometric alignment, rebuilt only when the keyframe changes (its pose is
-        read every time: mapping refines it)."""
+    def _on(self, device: torch.device) -> None:
+        """Keep the per-camera tables on the map's device (moved once)."""
+        if self.dirs_cam.device != device:
+            self.dirs_cam, self.border = self.dirs_cam.to(device), self.border.to(device)
+
+    def reference(self, keyframe: Keyframe | None, device: torch.device = torch.device("cpu")) -> Reference | None:
+        """The keyframe (host memory) prepared for photometric alignment on `device`, rebuilt only when the keyframe
+        changes (its pose is read every time: mapping refines it)."""
         if keyframe is None or keyframe.rgb.numel() == 0 or self.cfg.tracking.photometric_weight == 0:
             return None
         ref = self._reference
-        if ref is None or ref.frame_index != keyframe.frame_index:
-            ref = Reference.build(keyframe.frame_index, keyframe.rgb.float() / 255.0, keyframe.depth_image(),
-                                  keyframe.pose, self.cfg.tracking.pyramid_levels)
+        if ref is None or ref.frame_index != keyframe.frame_index or ref.depth.device != device:
+            ref = Reference.build(keyframe.frame_index, keyframe.rgb.to(device).float() / 255.0,
+                                  keyframe.depth_image().to(device), keyframe.pose.to(device),
+                                  self.cfg.tracking.pyramid_levels)
             self._reference = ref
-        ref.pose = keyframe.pose.double()
+        ref.pose = keyframe.pose.double().to(device)
         return ref
 
     @denormals_flushed()  # see cpu.py
@@ -114,35 +125,40 @@ class SDFTracker:
               usable: torch.Tensor | None = None, observed: ObservedSpace | None = None,
               keyframe: Keyframe | None = None) -> TrackingResult:
         """Align the frame to the map (SDF and, with `color_weight`, the map's colour) and, with
-        `photometric_weight`, to the images of `keyframe` (normally the newest keyframe)."""
+        `photometric_weight`, to the images of `keyframe` (normally the newest keyframe). Inputs and the result
+        are host tensors; the work runs on the field's device."""
         tc, T = self.cfg.tracking, self.cfg.model.truncation
-        depth = frame.depth.reshape(-1)
+        device = field.device
+        self._on(device)
+        image, depth = frame.rgb.to(device), frame.depth.to(device).reshape(-1)
         valid = self.border & (depth > 0)
         if usable is not None:
-            valid &= usable.reshape(-1)
+            valid &= usable.to(device).reshape(-1)
         candidates = torch.nonzero(valid).squeeze(1)
         depth_fraction = len(candidates) / max(int(self.border.sum()), 1)
         if len(candidates) < 50 or tc.iterations == 0:
             return TrackingResult(init_pose.clone(), float("nan"), len(candidates), depth_fraction)
-        pix = candidates[torch.randint(len(candidates), (min(tc.rays, len(candidates)),))]  # (randperm: 2 ms)
+        n = min(tc.rays, len(candidates))
+        pix = candidates[torch.randint(len(candidates), (n,), device=device)]  # (randperm: 2 ms)
         p_cam = (self.dirs_cam[pix] * depth[pix, None]).double()
         lam = tc.color_weight
-        grey_pixel = frame.rgb.reshape(-1, 3)[pix] @ GREY if lam > 0 else None
-        ref = self.reference(keyframe)
+        grey_pixel = to_grey(image.reshape(-1, 3)[pix]) if lam > 0 else None
+        ref = self.reference(keyframe, device)
         if ref is not None:
             u, v = (pix % self.intr.width).float(), (pix // self.intr.width).float()
             grey_current = [sample(level[None, None], u, v, 2.0**i)[:, 0].double()
-                            for i, level in enumerate(grey_pyramid(frame.rgb, len(ref.levels)))]
-        R, t = init_pose[:3, :3].double(), init_pose[:3, 3].double()
+                            for i, level in enumerate(grey_pyramid(image, len(ref.levels)))]
+        start = init_pose.to(device)
+        R, t = start[:3, :3].double(), start[:3, 3].double()
         used = photo_used = None  # the points scored, fixed at the initial pose so that costs compare
-        best_cost, best, inliers = float("inf"), init_pose.clone(), 0.0
+        best_cost, best_Rt, inliers = float("inf"), None, 0.0
         fixed = FrozenField(field)  # the map does not change while tracking
         for it in range(tc.iterations + 1):  # the last pass only scores the final pose
             x = p_cam @ R.T + t
             sdf, sdf_grad, grey, grey_grad = field_residuals(fixed, x.float(), T, lam > 0)
             if used is None:
                 used = observed.contains(x.float()) if observed is not None else \
-                    torch.ones(len(x), dtype=torch.bool)
+                    torch.ones(len(x), dtype=torch.bool, device=device)
                 if used.sum() < 30:
                     break
             band = used & (sdf.abs() < 0.99 * T)
@@ -150,7 +166,7 @@ class SDFTracker:
             cost = huber_cost(r_geo)
             if lam > 0:
                 r_col = (grey - grey_pixel) / tc.color_huber
-                cost = cost + lam * torch.where(band, huber_cost(r_col), huber_cost(torch.tensor(SATURATED_COLOR)))
+                cost = cost + lam * torch.where(band, huber_cost(r_col), SATURATED_COST)
             cost = float(cost[used].mean())
             if ref is not None:
                 r_ph, g_ph, ok = photometric_residuals(x, grey_current[0], ref, 0, self.intr, T)
@@ -158,12 +174,11 @@ class SDFTracker:
                     photo_used = ok
                 if photo_used.any():
                     r_ph = r_ph / tc.photometric_huber
-                    photo_cost = torch.where(ok, huber_cost(r_ph), huber_cost(torch.tensor(SATURATED_COLOR)))
+                    photo_cost = torch.where(ok, huber_cost(r_ph), SATURATED_COST)
                     cost += tc.photometric_weight * float(photo_cost[photo_used].mean())
             if cost < best_cost:
                 best_cost, inliers = cost, float(band.sum()) / max(float(used.sum()), 1.0)
-                best = torch.eye(4)
-                best[:3, :3], best[:3, 3] = R.float(), t.float()
+                best_Rt = R, t
             if it == tc.iterations or band.sum() < 30:
                 break
             xs, rs, gs, ws = [x[band]], [r_geo[band]], [sdf_grad[band].double() / tc.huber], \
@@ -191,5 +206,9 @@ class SDFTracker:
             R, t = dR @ R, dR @ t + delta[:3]
             if delta.norm() < 1e-6:
                 break
+        best = init_pose.clone()
+        if best_Rt is not None:
+            best = torch.eye(4)
+            best[:3, :3], best[:3, 3] = best_Rt[0].float().cpu(), best_Rt[1].float().cpu()
         observed_fraction = float(used.float().mean()) if used is not None else float("nan")
         return TrackingResult(best, best_cost, len(candidates), depth_fraction, inliers, observed_fraction)
