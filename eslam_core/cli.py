@@ -1,4 +1,4 @@
-"""The `eslam` command: run, demo, mesh, eval."""
+"""The `eslam` command: run, demo, mesh, eval, bag, doctor."""
 from __future__ import annotations
 
 import argparse
@@ -59,7 +59,10 @@ def cmd_run(args) -> int:
     if args.catch_up_iterations is not None and args.workers != 2:
         raise ValueError("--catch-up-iterations applies to the pipelined runtime: add --workers 2 (lock-step maps "
                          "every keyframe in full)")
-    cfg = load_config(args.config, parse_overrides(args.set))
+    overrides = parse_overrides(args.set)
+    if args.device is not None:  # checked with the rest of the config: a missing GPU is one clear error line
+        overrides.setdefault("run", {})["device"] = args.device
+    cfg = load_config(args.config, overrides)
     ds = open_configured_dataset(cfg, Path(args.data), args.frames, args.stride)
     s = run_sequence(cfg, ds, Path(args.out), data_label=str(Path(args.data).resolve()),
                      frames=(args.frames[0], args.frames[1], args.stride), resume=args.resume,
@@ -99,6 +102,13 @@ def cmd_eval(args) -> int:
     return run_eval(args)
 
 
+def cmd_doctor(args) -> int:
+    from eslam_core.doctor import report
+
+    print(report())
+    return 0
+
+
 def cmd_bag(args) -> int:
     # The core holds no ROS: the bag tools (and rclpy) are imported only when this command runs.
     try:
@@ -134,6 +144,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--workers 2: once newer keyframes wait, a mapping step ends after N iterations divided by "
                         "their number, so that the mapper keeps up with the tracker (default: every step runs all "
                         "its iterations)")
+    r.add_argument("--device", default=None, metavar="DEVICE",
+                   help="where the map, tracking and mapping run: auto (a CUDA GPU when torch sees one), cpu, cuda "
+                        "or cuda:N (default: run.device of the config, auto)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_run)
 
@@ -167,6 +180,10 @@ def build_parser() -> argparse.ArgumentParser:
                        add_help=False, prefix_chars="\0")
     b.add_argument("bag_args", nargs=argparse.REMAINDER)
     b.set_defaults(func=cmd_bag)
+
+    doc = sub.add_parser("doctor", help="what this installation runs on: torch, CUDA, the device auto picks, the "
+                                        "native kernels, the ROS 2 wheels")
+    doc.set_defaults(func=cmd_doctor)
     return p
 
 

@@ -224,9 +224,16 @@ class MeshConfig:
 class RunConfig:
     seed: int = 0
     threads: int = 0  # torch threads (0 = torch's default)
+    # Where the map, tracking, mapping and rendering run (eslam_core/device.py): auto (a CUDA GPU when torch sees
+    # one, else the CPU), cpu, cuda or cuda:N. Checked against this machine when the config is loaded.
+    device: str = "auto"
 
     def validate(self, check) -> None:
+        from eslam_core.device import device_problem  # (imports torch: only when a config is validated)
+
         check(self.threads >= 0, "run.threads", "must be >= 0")
+        problem = device_problem(self.device)
+        check(problem is None, "run.device", problem or "")
 
 
 @dataclass

@@ -83,13 +83,15 @@ class SLAM:
         }
 
     @staticmethod
-    def from_state_dict(state: dict) -> "SLAM":
+    def from_state_dict(state: dict, device: str = "auto") -> "SLAM":
         if not isinstance(state, dict) or "map" not in state and "field" not in state:
             raise ValueError("not an ESLAM checkpoint (no map inside)")
         if state.get("version") != CHECKPOINT_VERSION:
             raise ValueError(f"checkpoint version {state.get('version')} is not supported (expected "
                                   f"{CHECKPOINT_VERSION}); re-run `eslam run` to produce a new checkpoint")
-        slam = SLAM(config_from_dict(state["config"], "checkpoint"), Intrinsics(**state["intrinsics"]))
+        # A checkpoint runs where it is loaded (`device`), not necessarily where it was made (that GPU may be absent).
+        cfg = dict(state["config"], run=dict(state["config"].get("run", {}), device=device))
+        slam = SLAM(config_from_dict(cfg, "checkpoint"), Intrinsics(**state["intrinsics"]))
         slam.map.load_state_dict(state["map"])
         slam.trajectory = TrackedTrajectory.from_state_dict(state["trajectory"])
         return slam

@@ -17,6 +17,7 @@ import torch
 
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
+from eslam_core.device import resolve_device
 from eslam_core.frames import PreparedFrame
 from eslam_core.geometry import depth_points_world
 from eslam_core.mapping.extent import estimate_bound, grow_to_multiple, grown_extent, outside_mask
@@ -56,6 +57,7 @@ def surface_points(dirs_cam: torch.Tensor, kf: Keyframe, width: int, stride: int
 class SceneMap:
     def __init__(self, cfg: Config, intr: Intrinsics, dirs_cam: torch.Tensor):
         self.cfg, self.intr, self.dirs_cam = cfg, intr, dirs_cam
+        self.device = resolve_device(cfg.run.device)  # of the field and observed space; keyframes stay on the host
         mc = cfg.mapping
         self.keyframes = KeyframeStore(int(mc.keyframe_budget_mb * 2**20))
         self.mapper = Mapper(cfg, dirs_cam, intr.height, intr.width)
@@ -78,8 +80,8 @@ class SceneMap:
 
     def start(self, extent: np.ndarray) -> None:
         self.extent = np.asarray(extent, dtype=np.float64)
-        self.field = SceneField(self.extent, self.cfg.model)
-        self.observed = ObservedSurfaces(self.extent, self.cfg.model.truncation)
+        self.field = SceneField(self.extent, self.cfg.model, self.device)
+        self.observed = ObservedSurfaces(self.extent, self.cfg.model.truncation, self.device)
         log.info("map: %d parameters (%.1f MB) over %s", self.field.parameter_count(), self.field.nbytes() / 2**20,
                  np.round(self.extent, 3).tolist())
 
@@ -184,7 +186,7 @@ class SceneMap:
     def state_dict(self) -> dict:
         return {
             "extent": None if self.extent is None else torch.from_numpy(self.extent),
-            "field": self.field.state_dict() if self.field is not None else None,
+            "field": {k: v.cpu() for k, v in self.field.state_dict().items()} if self.field is not None else None,
             "keyframes": [dict(kf.__dict__) for kf in self.keyframes],
             "keyframes_made": self.keyframes.made,
             "points_outside": self.points_outside,

@@ -57,6 +57,7 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
+from eslam_core.device import peak_memory_mb as device_peak_mb, resolve_device
 from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSurfaces
@@ -335,6 +336,7 @@ class MapReplica:
 
     def __init__(self, cfg: Config, intr: Intrinsics, dirs_cam: torch.Tensor):
         self.cfg, self.intr, self.dirs_cam = cfg, intr, dirs_cam
+        self.device = resolve_device(cfg.run.device)  # the mapper's map lives there too
         self.extent: Optional[np.ndarray] = None
         self.field: Optional[SceneField] = None
         self.observed: Optional[ObservedSurfaces] = None
@@ -346,14 +348,14 @@ class MapReplica:
 
     def start(self, extent: np.ndarray) -> None:
         self.extent = extent
-        self.field = SceneField(extent, self.cfg.model)
-        self.observed = ObservedSurfaces(extent, self.cfg.model.truncation)
+        self.field = SceneField(extent, self.cfg.model, self.device)
+        self.observed = ObservedSurfaces(extent, self.cfg.model.truncation, self.device)
 
     def attach(self, extent: np.ndarray) -> None:
         """The mapper's map over `extent` (grown, or as started): a field of that size to copy it into."""
         if not np.array_equal(extent, self.extent):
             self.extent = np.asarray(extent)
-            self.field = SceneField(self.extent, self.cfg.model)
+            self.field = SceneField(self.extent, self.cfg.model, self.device)
             self.observed.grow(self.extent)
 
     def add_keyframe(self, kf: Keyframe) -> None:
@@ -483,6 +485,7 @@ class TrackerWorker:
         self.tracked += 1
         self.ch.board.add(Counter.TRACKED)
         self.ch.board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
+        self.ch.board.set(Counter.TRACKER_DEVICE_PEAK_MB, device_peak_mb(self.replica.device))
 
     def _hand_over(self, kf: Keyframe, extent: Optional[np.ndarray]) -> None:
         """Send a new keyframe to the mapper; keep only the newest one's images here."""
@@ -629,6 +632,7 @@ class MapperWorker:
         board = self.ch.board
         board.add(Counter.MAPPING_STEPS)
         board.set(Counter.MAPPER_PEAK_MB, peak_rss_mb())
+        board.set(Counter.MAPPER_DEVICE_PEAK_MB, device_peak_mb(self.scene.device))
         board.set(Counter.POINTS_OUTSIDE, self.scene.points_outside)
         board.set(Counter.POINTS_SEEN, self.scene.points_seen)
         memory = self.scene.memory()
