@@ -224,6 +224,8 @@ class MeshConfig:
 class RunConfig:
     seed: int = 0
     threads: int = 0  # torch threads (0 = torch's default)
+    # "slam": track and map. "localization": track and relocalize against a loaded, frozen map (no mapping).
+    mode: str = "slam"
     # Where the map, tracking, mapping and rendering run (eslam_core/device.py): auto (a CUDA GPU when torch sees
     # one, else the CPU), cpu, cuda or cuda:N. Checked against this machine when the config is loaded.
     device: str = "auto"
@@ -232,8 +234,91 @@ class RunConfig:
         from eslam_core.device import device_problem  # (imports torch: only when a config is validated)
 
         check(self.threads >= 0, "run.threads", "must be >= 0")
+        check(self.mode in ("slam", "localization"), "run.mode", "must be 'slam' or 'localization'")
         problem = device_problem(self.device)
         check(problem is None, "run.device", problem or "")
+
+
+@dataclass
+class QualityConfig:
+    """When a tracked frame counts as lost (tracking/quality.py)."""
+
+    depth_low: float = 0.05  # fraction of pixels with depth where the depth score is 0 ...
+    depth_high: float = 0.25  # ... and where it reaches 1
+    inliers_low: float = 0.2  # inlier fraction where the inlier score is 0 ...
+    inliers_high: float = 0.6  # ... and 1
+    residual_high: float = 2.0  # loss / typical loss where the residual score starts to fall ...
+    residual_low: float = 4.0  # ... and where it is 0
+    correction_m: float = 0.15  # correction of the prediction per frame gap where the motion score starts to fall
+    correction_deg: float = 15.0  # (it is 0 at twice these)
+    lost_below: float = 0.5
+    found_above: float = 0.7
+
+    def validate(self, check) -> None:
+        check(0 <= self.depth_low < self.depth_high <= 1, "quality.depth_low",
+              "needs 0 <= depth_low < depth_high <= 1 (fractions of the pixels)")
+        check(0 <= self.inliers_low < self.inliers_high <= 1, "quality.inliers_low",
+              "needs 0 <= inliers_low < inliers_high <= 1 (fractions of the points)")
+        check(1 <= self.residual_high < self.residual_low, "quality.residual_high",
+              "needs 1 <= residual_high < residual_low (ratios to the typical loss)")
+        check(self.correction_m > 0 and self.correction_deg > 0, "quality.correction_m",
+              "correction_m and correction_deg must be positive")
+        check(0 < self.lost_below <= self.found_above <= 1, "quality.lost_below",
+              "needs 0 < lost_below <= found_above <= 1")
+
+
+@dataclass
+class RelocalizationConfig:
+    """Finding a lost camera again against the keyframes (tracking/relocalization.py)."""
+
+    enabled: bool = True
+    features: int = 1000  # ORB keypoints per image
+    # FAST corner thresholds (grey levels), ORB-SLAM's: an image giving under half the keypoints at the first is
+    # searched again at the second, which also finds corners in smooth texture, not only on object outlines (where
+    # the depth of a corner is ambiguous and a keyframe feature is dropped).
+    fast_threshold: int = 20
+    fast_threshold_min: int = 7
+    thumbnail_width: int = 40  # PTAM's small blurry image: 40 x 30 for 4:3 images ...
+    thumbnail_blur: float = 2.5  # ... blurred with this sigma, in thumbnail pixels
+    words: int = 1000  # size of the binary vocabulary (at most one word per 20 keyframe descriptors)
+    # Place recognition: "both" verifies the best keyframes of each ranking in turn, best thumbnail first.
+    retrieval: str = "both"  # both | thumbnail | words
+    candidates: int = 3  # keyframes verified geometrically per frame, from each ranking
+    enough_inliers: int = 100  # stop verifying candidates once one keyframe gives this many inliers
+    ratio: float = 0.8  # Lowe's ratio test on the Hamming distances of the two nearest keyframe features
+    reprojection_px: float = 4.0  # PnP RANSAC inlier threshold at 640 pixels wide (scaled with the image width)
+    # Noise of the refinement's residuals: keypoint position (pixels at 640 wide), and measured depth as a
+    # Kinect-like sensor's: sigma(z) = base + quadratic * (z - 0.4 m)^2 (Nguyen et al. 2012).
+    pixel_sigma: float = 1.0
+    depth_sigma_base: float = 0.0012
+    depth_sigma_quadratic: float = 0.0019
+    min_inliers: int = 25  # PnP inliers needed to accept a pose ...
+    min_inlier_ratio: float = 0.25  # ... and inliers / matches
+    depth_sigmas: float = 3.0  # a feature agrees with the measured depth within this many sigma(z)
+    min_depth_agreement: float = 0.5  # fraction of the reprojected features with measured depth that must agree
+    edge_tolerance: float = 0.05  # a keypoint whose 3x3 depths spread over more than this * depth is on an edge
+
+    def validate(self, check) -> None:
+        check(self.features >= 50, "relocalization.features", "must be >= 50 (ORB keypoints per image)")
+        check(1 <= self.fast_threshold_min <= self.fast_threshold <= 100, "relocalization.fast_threshold",
+              "needs 1 <= fast_threshold_min <= fast_threshold <= 100 (grey levels)")
+        check(self.thumbnail_width >= 8, "relocalization.thumbnail_width", "must be >= 8 pixels")
+        check(self.thumbnail_blur >= 0, "relocalization.thumbnail_blur", "must be >= 0 (thumbnail pixels)")
+        check(self.words >= 16, "relocalization.words", "must be >= 16")
+        check(self.retrieval in ("both", "thumbnail", "words"), "relocalization.retrieval",
+              "must be 'both', 'thumbnail' or 'words'")
+        check(self.candidates >= 1, "relocalization.candidates", "must be >= 1")
+        check(self.enough_inliers >= self.min_inliers, "relocalization.enough_inliers", "must be >= min_inliers")
+        check(0 < self.ratio <= 1, "relocalization.ratio", "must be in (0, 1]")
+        check(self.reprojection_px > 0, "relocalization.reprojection_px", "must be positive (pixels)")
+        check(self.pixel_sigma > 0 and self.depth_sigma_base > 0 and self.depth_sigma_quadratic >= 0,
+              "relocalization.pixel_sigma", "pixel_sigma and depth_sigma_base must be positive, "
+              "depth_sigma_quadratic >= 0")
+        check(self.min_inliers >= 6, "relocalization.min_inliers", "must be >= 6 (PnP needs at least 4)")
+        check(0 <= self.min_inlier_ratio <= 1, "relocalization.min_inlier_ratio", "must be in [0, 1]")
+        check(self.depth_sigmas > 0, "relocalization.depth_sigmas", "must be positive")
+        check(self.edge_tolerance > 0, "relocalization.edge_tolerance", "must be positive (fraction of depth)")
+        check(0 <= self.min_depth_agreement <= 1, "relocalization.min_depth_agreement", "must be in [0, 1]")
 
 
 @dataclass
@@ -272,6 +357,8 @@ class Config:
     mesh: MeshConfig = field(default_factory=MeshConfig)
     run: RunConfig = field(default_factory=RunConfig)
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
+    quality: QualityConfig = field(default_factory=QualityConfig)
+    relocalization: RelocalizationConfig = field(default_factory=RelocalizationConfig)
 
     def validate(self, source: str = "<config>") -> "Config":
         def check(ok: bool, key: str, message: str) -> None:

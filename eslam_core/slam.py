@@ -32,6 +32,8 @@ class StepResult:
     keyframe: bool
     mapping_loss: float
     refined: dict  # keyframe number -> refined pose, from this step's mapping
+    quality: float  # of the tracked pose (tracking/quality.py)
+    lost: bool  # the camera is lost: the pose is a guess, the frame was not mapped
 
 
 def new_keyframe(pf: PreparedFrame, pose: torch.Tensor, number: int) -> Keyframe:
@@ -54,23 +56,29 @@ class SLAM:
     def step(self, frame: Frame) -> StepResult:
         pf = prepare_frame(frame, self.input_intrinsics, self.cfg.camera)
         if not self.map.started:
-            pose0 = self.frontend.first_pose(pf)
+            pose0 = self.frontend.first_pose(pf, self.trajectory)
             self.map.start(initial_extent(self.cfg, pf, self.intr, pose0))
             self.trajectory.record(pf.index, pf.timestamp, pose0, 0.0, pf.gt_pose, keyframe=True)
+            self.frontend.remember(0, pf, pose0)
             self.map.add_keyframe(new_keyframe(pf, torch.from_numpy(pose0).float(), 0))
             step = self.map.warm_up()
-            return StepResult(pf.index, pose0, 0.0, True, step.loss, {})
+            return StepResult(pf.index, pose0, 0.0, True, step.loss, {}, 1.0, False)
         tracked = self.frontend.track(pf, self.map, self.trajectory)
         pose = tracked.pose.double().numpy()
         n = len(self.trajectory)
-        self.trajectory.record(pf.index, pf.timestamp, pose, tracked.loss, pf.gt_pose, tracked.keyframe)
+        self.trajectory.record(pf.index, pf.timestamp, pose, tracked.loss, pf.gt_pose, tracked.keyframe,
+                               tracked.quality.value, tracked.lost)
         mapping_loss, refined = float("nan"), {}
         if tracked.keyframe:
-            self.map.add_keyframe(new_keyframe(pf, tracked.pose, self.trajectory.keyframes - 1))
+            number = self.trajectory.keyframes - 1
+            self.frontend.remember(number, pf, tracked.pose)
+            self.map.add_keyframe(new_keyframe(pf, tracked.pose, number))
             step = self.map.map_newest(self.stop_mapping_early)
             self.trajectory.refine(step.refined)
+            self.frontend.refine(step.refined)
             mapping_loss, refined = step.loss, step.refined
-        return StepResult(pf.index, self.trajectory.pose(n), tracked.loss, tracked.keyframe, mapping_loss, refined)
+        return StepResult(pf.index, self.trajectory.pose(n), tracked.loss, tracked.keyframe, mapping_loss, refined,
+                          tracked.quality.value, tracked.lost)
 
     # ------------------------------------------------------------------------------------------------ checkpoint
     def state_dict(self) -> dict:
@@ -94,4 +102,5 @@ class SLAM:
         slam = SLAM(config_from_dict(cfg, "checkpoint"), Intrinsics(**state["intrinsics"]))
         slam.map.load_state_dict(state["map"])
         slam.trajectory = TrackedTrajectory.from_state_dict(state["trajectory"])
+        slam.frontend.start_lost(slam.map.keyframes)
         return slam

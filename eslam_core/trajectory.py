@@ -25,6 +25,8 @@ class FrameRecord:
     tracking_loss: float
     gt_pose: Optional[np.ndarray]
     tracked: np.ndarray  # 4x4: the pose when tracked (a keyframe's before mapping refined it)
+    quality: float = 1.0  # of the tracked pose, in [0, 1] (tracking/quality.py)
+    lost: bool = False  # the camera was lost at this frame: the pose is a guess
 
 
 def frame_pose(records: list[FrameRecord], keyframe_records: dict[int, int], keyframe_pose: Callable[[int], np.ndarray],
@@ -57,12 +59,12 @@ class TrackedTrajectory:
         return len(self.keyframe_records)
 
     def record(self, index: int, timestamp: float, pose: np.ndarray, loss: float, gt_pose: Optional[np.ndarray],
-               keyframe: bool) -> FrameRecord:
+               keyframe: bool, quality: float = 1.0, lost: bool = False) -> FrameRecord:
         """Store a tracked frame relative to the newest keyframe (itself, when it is a new keyframe)."""
         pose = np.asarray(pose, dtype=np.float64)
         ref = self.keyframes if keyframe else self.keyframes - 1
         relative = np.eye(4) if keyframe else np.linalg.inv(self.keyframe_pose(ref)) @ pose
-        rec = FrameRecord(index, timestamp, ref, relative, loss, gt_pose, pose)
+        rec = FrameRecord(index, timestamp, ref, relative, loss, gt_pose, pose, quality, lost)
         self.append(rec, keyframe)
         return rec
 

@@ -128,7 +128,9 @@ def test_diverged_tracking_keeps_the_prediction(room_sequence, caplog):
     from eslam_core.slam import SLAM
     from eslam_core.tracking.render_tracker import TrackingResult
 
-    cfg = load_config("demo", {"mapping": {"first_iterations": 10, "iterations": 2}, "tracking": {"iterations": 2}})
+    # (a map this rough gives poor tracking quality: only the diverged frame is to count as lost here)
+    cfg = load_config("demo", {"mapping": {"first_iterations": 10, "iterations": 2}, "tracking": {"iterations": 2},
+                               "quality": {"lost_below": 0.01, "found_above": 0.01}})
     slam = SLAM(cfg, room_sequence.intrinsics)
     track = slam.frontend.tracker.track
 

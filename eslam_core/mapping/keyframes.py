@@ -160,7 +160,7 @@ class KeyframeStore:
         if not near.any():
             return
         candidates = torch.nonzero(near).squeeze(1)
-        overlap = overlap_fractions(points, poses[candidates], intr)
+        overlap = overlap_fractions(points, poses[candidates], intr, margin=0)
         best = int(overlap.argmax())
         if float(overlap[best]) >= REDUNDANT_OVERLAP:
             self.items.pop(int(candidates[best]))

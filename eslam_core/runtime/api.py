@@ -52,6 +52,8 @@ class PoseUpdate:
     tracking_loss: float
     keyframe: bool
     latency_s: float  # frame arrival (submit) -> pose available
+    quality: float = 1.0  # of the tracked pose, in [0, 1] (tracking/quality.py)
+    lost: bool = False  # the camera is lost: the pose is a guess (not mapped; a publisher should say so)
 
 
 @dataclass

@@ -335,7 +335,7 @@ class MultiProcessRuntime(SavingMixin):
             self._mirror.append(r, msg.keyframe)
             # The tracker's newest frame has no next keyframe to blend with: its pose is the pose as tracked.
             self._updates.append(PoseUpdate(r.index, r.timestamp, r.tracked, r.tracking_loss, msg.keyframe,
-                                            msg.latency_s))
+                                            msg.latency_s, r.quality, r.lost))
             self._tracking_rate.tick(msg.done)
             self._latency.add(msg.latency_s)
         elif isinstance(msg, MappingReport):

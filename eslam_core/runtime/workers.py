@@ -436,6 +436,7 @@ class TrackerWorker:
                 elif isinstance(msg, RefinedPoses):
                     self.trajectory.refine(msg.poses)
                     self.replica.refine(msg.poses)
+                    self.frontend.refine(msg.poses)
             msg = _get(self.ch.to_tracker, 0.0)
 
     def _wait_for_map(self) -> None:
@@ -467,17 +468,19 @@ class TrackerWorker:
         pf = prepare_frame(Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose, item.odom_pose),
                            self.intr, self.cfg.camera)
         if not self.replica.started:  # the first frame starts the map; the mapper warms it up
-            pose0, keyframe = self.frontend.first_pose(pf), True
+            pose0, keyframe = self.frontend.first_pose(pf, self.trajectory), True
             extent = initial_extent(self.cfg, pf, self.intr, pose0)
             self.replica.start(extent)
             record = self.trajectory.record(pf.index, pf.timestamp, pose0, 0.0, pf.gt_pose, keyframe=True)
+            self.frontend.remember(0, pf, pose0)
             self._hand_over(new_keyframe(pf, torch.from_numpy(pose0).float(), 0), extent)
         else:
             tracked = self.frontend.track(pf, self.replica, self.trajectory)
             keyframe = tracked.keyframe
             record = self.trajectory.record(pf.index, pf.timestamp, tracked.pose.double().numpy(), tracked.loss,
-                                            pf.gt_pose, keyframe)
+                                            pf.gt_pose, keyframe, tracked.quality.value, tracked.lost)
             if keyframe:
+                self.frontend.remember(record.reference, pf, tracked.pose)
                 self._hand_over(new_keyframe(pf, tracked.pose, record.reference), None)
         done = time.monotonic()
         log.debug("tracker: frame %d tracked in %.2f s (%d threads)", item.index, done - start, torch.get_num_threads())

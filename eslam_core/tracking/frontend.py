@@ -1,10 +1,17 @@
-"""The tracking front end: the pose of each new frame, and whether it becomes a keyframe.
+"""The tracking front end: the pose of each new frame, how far it can be trusted, and whether it becomes a
+keyframe.
 
 Prediction: the motion of an external odometry between the last frame and this one when frames carry
-`odom_pose`, else constant velocity (scaled by the time gaps), else the last pose. Tracking refines the prediction
-against the map (the paper's rendering tracker or the fast SDF alignment); with `tracking.mode: external` the
-odometry's pose (expressed in the map frame by the first frame) is taken as it is. A pose is re-orthonormalised
-where it is made, and a diverged optimisation keeps the prediction. Every `mapping.every`-th frame is a keyframe.
+`odom_pose`, else constant velocity (scaled by the time gaps) from the last well-tracked frames, else the last
+pose. Tracking refines the prediction against the map (the paper's rendering tracker or the fast SDF alignment);
+with `tracking.mode: external` the odometry's pose (expressed in the map frame by the first frame) is taken as it
+is. A pose is re-orthonormalised where it is made, and a diverged optimisation keeps the prediction.
+
+Every tracked frame gets a quality from what the tracker measured (quality.py). Below `quality.lost_below` the
+camera is *lost*: the frame makes no keyframe (it is never mapped) and is not the next frame's prediction. While
+lost, each frame is first matched against the keyframes (relocalization.py: place recognition, then PnP with the
+keyframe's depth); a pose found there is refined by the tracker, and tracking resumes once the quality reaches
+`quality.found_above`. Every `mapping.every`-th well-tracked frame is a keyframe.
 
 What the front end needs of the map (`MapView`) is the field, its extent, observed space and the newest keyframe:
 the lock-step system gives it the `SceneMap` itself, the tracking process its replica of the mapper's map.
@@ -12,6 +19,8 @@ the lock-step system gives it the `SceneMap` itself, the tracking process its re
 from __future__ import annotations
 
 import logging
+import math
+from collections import deque
 from dataclasses import dataclass
 from typing import Optional, Protocol
 
@@ -26,6 +35,7 @@ from eslam_core.mapping.extent import outside_mask
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.representation.field import SceneField
+from eslam_core.tracking.quality import Quality, TrackingEvidence, is_lost, tracking_quality, typical_loss
 from eslam_core.tracking.render_tracker import constant_velocity, make_tracker, time_ratio
 from eslam_core.trajectory import TrackedTrajectory
 
@@ -46,6 +56,9 @@ class TrackedPose:
     prediction: torch.Tensor
     loss: float
     keyframe: bool
+    quality: Quality
+    lost: bool  # the camera is lost after this frame (its pose is not to be trusted, nor mapped)
+    relocalized_from: Optional[int] = None  # the keyframe whose match gave this frame's starting pose
 
 
 class TrackingFrontEnd:
@@ -54,11 +67,46 @@ class TrackingFrontEnd:
         self.tracker = make_tracker(cfg, dirs_cam, intr) if cfg.tracking.mode == "track" else None
         self.map_from_odom: Optional[np.ndarray] = None  # fixed by the first frame that carries odometry
         self.last_odom: Optional[np.ndarray] = None
+        self.lost = False
+        self.good: list[int] = []  # trajectory positions of the last well-tracked frames (the prediction's)
+        self.recent_losses: deque = deque(maxlen=30)  # of well-tracked frames: the residual score's reference
+        self.since_keyframe = 0
+        self.unindexed: list = []  # keyframes of a loaded map not in `places` yet
+        self.places = None  # the keyframes for relocalization (a KeyframeDatabase), when enabled
+        if cfg.relocalization.enabled and self.tracker is not None:
+            from eslam_core.tracking.relocalization import KeyframeDatabase  # (OpenCV: loaded only when used)
 
-    def first_pose(self, pf: PreparedFrame) -> np.ndarray:
+            self.places = KeyframeDatabase(cfg.relocalization, cfg.run.seed)
+
+    def start_lost(self, keyframes) -> None:
+        """A loaded map: the camera is not where the map ended, it has to be found against the map's keyframes
+        (those with every pixel: a reduced keyframe is too coarse for ORB), indexed when first needed."""
+        self.lost, self.good = True, []
+        self.unindexed = [kf for kf in keyframes if kf.stride == 1]
+
+    def remember(self, number: int, pf: PreparedFrame, pose) -> None:
+        """A new keyframe, for relocalization."""
+        if self.places is not None:
+            self.places.add(number, rgb8(pf), pf.depth.numpy(), pose, self.intr)
+
+    def _index_loaded_keyframes(self) -> None:
+        for kf in self.unindexed:
+            self.places.add(kf.number, kf.rgb.numpy(), kf.depth_image().numpy(), kf.pose, self.intr)
+        if self.unindexed:
+            self.places.build_vocabulary()
+        self.unindexed = []
+
+    def refine(self, poses: dict) -> None:
+        if self.places is not None:
+            for number, pose in poses.items():
+                if int(number) in self.places.entries:
+                    self.places.set_pose(int(number), pose)
+
+    def first_pose(self, pf: PreparedFrame, trajectory: TrackedTrajectory) -> np.ndarray:
         """The first frame fixes the map frame: its ground-truth pose when known (outputs share its frame)."""
         pose0 = pf.gt_pose if pf.gt_pose is not None else np.eye(4)
         self._note_odometry(pf, pose0)
+        self.good = [len(trajectory)]
         return orthonormalize(pose0)
 
     def _note_odometry(self, pf: PreparedFrame, pose: np.ndarray) -> None:
@@ -68,24 +116,36 @@ class TrackingFrontEnd:
             self.map_from_odom = pose @ np.linalg.inv(pf.odom_pose)
         self.last_odom = pf.odom_pose
 
-    def predict(self, pf: PreparedFrame, trajectory: TrackedTrajectory) -> np.ndarray:
-        n = len(trajectory)
-        prev = trajectory.pose(n - 1)
+    def predict(self, pf: PreparedFrame, trajectory: TrackedTrajectory) -> tuple[np.ndarray, float]:
+        """The predicted pose (from the last well-tracked frames only) and the time since the last of them in
+        units of the usual frame gap."""
+        last = self.good[-1] if self.good else len(trajectory) - 1
+        prev = trajectory.pose(last)
+        gap = 1.0
+        if len(self.good) >= 2:
+            a, b = trajectory.records[self.good[-2]].timestamp, trajectory.records[last].timestamp
+            gap = time_ratio(a, b, pf.timestamp, limit=1e9)
         if pf.odom_pose is not None and self.last_odom is not None:
             if self.cfg.tracking.mode == "external":
-                return self.map_from_odom @ pf.odom_pose
-            return prev @ np.linalg.inv(self.last_odom) @ pf.odom_pose
-        if n < 2 or not self.cfg.tracking.constant_velocity:
-            return prev
-        ratio = time_ratio(trajectory.records[n - 2].timestamp, trajectory.records[n - 1].timestamp, pf.timestamp)
-        return constant_velocity(trajectory.pose(n - 2), prev, ratio)
+                return self.map_from_odom @ pf.odom_pose, gap
+            return prev @ np.linalg.inv(self.last_odom) @ pf.odom_pose, gap
+        if len(self.good) < 2 or not self.cfg.tracking.constant_velocity or self.lost:
+            return prev, gap
+        return constant_velocity(trajectory.pose(self.good[-2]), prev, min(gap, 4.0)), gap
 
     def track(self, pf: PreparedFrame, view: MapView, trajectory: TrackedTrajectory) -> TrackedPose:
-        init = torch.from_numpy(orthonormalize(self.predict(pf, trajectory))).float()
-        keyframe = len(trajectory) % self.cfg.mapping.every == 0
+        predicted, gap = self.predict(pf, trajectory)
+        init = torch.from_numpy(orthonormalize(predicted)).float()
         if self.tracker is None:  # external mode: the odometry's pose, mapping only
             self._note_odometry(pf, init.double().numpy())
-            return TrackedPose(init, init, 0.0, keyframe)
+            return self._decided(len(trajectory), init, init, 0.0, Quality(1.0, "ok", False), None)
+        found = None
+        if self.lost and self.places is not None:
+            self._index_loaded_keyframes()
+        if self.lost and self.places is not None and len(self.places):
+            found = self.places.relocalize(rgb8(pf), pf.depth.numpy(), self.intr)
+            if found is not None:
+                init = torch.from_numpy(orthonormalize(found.pose)).float()
         # The extent test uses the predicted pose: a few centimetres off at most, and it saves a second pass.
         usable = self.inside_map(pf, view.extent, init)
         result = self.tracker.track(view.field, pf, init, usable, view.observed.space, view.newest_keyframe())
@@ -95,10 +155,43 @@ class TrackingFrontEnd:
                         pf.index)
             pose = init
         pose = orthonormalize(pose)
-        self._note_odometry(pf, pose.double().numpy())
-        return TrackedPose(pose, init, result.loss, keyframe)
+        evidence = TrackingEvidence(result.depth_fraction, result.inlier_fraction, result.observed_fraction,
+                                    result.loss, (torch.linalg.inv(init.double()) @ pose.double()).numpy(),
+                                    typical_loss(self.recent_losses), 1.0 if found is not None else gap)
+        quality = tracking_quality(evidence, self.cfg.quality)
+        return self._decided(len(trajectory), pose, init, result.loss, quality,
+                             None if found is None else found.keyframe_id, pf)
+
+    def _decided(self, position: int, pose: torch.Tensor, init: torch.Tensor, loss: float, quality: Quality,
+                 relocalized_from: Optional[int], pf: Optional[PreparedFrame] = None) -> TrackedPose:
+        """The tracking state after this frame, and whether it is a keyframe."""
+        was_lost = self.lost
+        self.lost = is_lost(was_lost, quality, self.cfg.quality)
+        if self.lost and not was_lost:
+            log.warning("frame %d: tracking lost (%s); its pose is not used, relocalizing against the keyframes",
+                        pf.index if pf else position, quality.reason)
+        elif was_lost and not self.lost:
+            log.info("frame %d: tracking resumed%s (quality %.2f)", pf.index if pf else position,
+                     f", relocalized against keyframe {relocalized_from}" if relocalized_from is not None else "",
+                     quality.value)
+        keyframe = False
+        if not self.lost:
+            self.good = (self.good + [position])[-2:]
+            if math.isfinite(loss):
+                self.recent_losses.append(loss)
+            if pf is not None:
+                self._note_odometry(pf, pose.double().numpy())
+            self.since_keyframe += 1
+            keyframe = self.since_keyframe >= self.cfg.mapping.every and self.cfg.run.mode == "slam"
+            if keyframe:
+                self.since_keyframe = 0
+        return TrackedPose(pose, init, loss, keyframe, quality, self.lost, relocalized_from)
 
     def inside_map(self, pf: PreparedFrame, extent: np.ndarray, pose: torch.Tensor) -> torch.Tensor:
         """Pixels whose depth point lies inside the map's extent: the field knows nothing beyond it."""
         depth = pf.depth.reshape(-1)
         return ~outside_mask(depth_points_world(self.dirs_cam, depth, pose), extent).reshape(pf.depth.shape)
+
+
+def rgb8(pf: PreparedFrame) -> np.ndarray:
+    return (pf.rgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()

@@ -24,33 +24,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from eslam_core.config import QualityConfig
 from eslam_core.geometry import rotation_angle_deg
-
-
-@dataclass
-class QualityConfig:
-    depth_low: float = 0.05  # fraction of pixels with depth where the depth score is 0 ...
-    depth_high: float = 0.25  # ... and where it reaches 1
-    inliers_low: float = 0.2  # inlier fraction where the inlier score is 0 ...
-    inliers_high: float = 0.6  # ... and 1
-    residual_high: float = 2.0  # loss / typical loss where the residual score starts to fall ...
-    residual_low: float = 4.0  # ... and where it is 0
-    correction_m: float = 0.15  # correction of the prediction per frame gap where the motion score starts to fall
-    correction_deg: float = 15.0  # (it is 0 at twice these)
-    lost_below: float = 0.5
-    found_above: float = 0.7
-
-    def validate(self, check) -> None:
-        check(0 <= self.depth_low < self.depth_high <= 1, "quality.depth_low",
-              "needs 0 <= depth_low < depth_high <= 1 (fractions of the pixels)")
-        check(0 <= self.inliers_low < self.inliers_high <= 1, "quality.inliers_low",
-              "needs 0 <= inliers_low < inliers_high <= 1 (fractions of the points)")
-        check(1 <= self.residual_high < self.residual_low, "quality.residual_high",
-              "needs 1 <= residual_high < residual_low (ratios to the typical loss)")
-        check(self.correction_m > 0 and self.correction_deg > 0, "quality.correction_m",
-              "correction_m and correction_deg must be positive")
-        check(0 < self.lost_below <= self.found_above <= 1, "quality.lost_below",
-              "needs 0 < lost_below <= found_above <= 1")
 
 
 @dataclass(frozen=True)

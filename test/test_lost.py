@@ -1,0 +1,81 @@
+"""Lost and found: a covered lens and a camera carried away are detected, never mapped, and the camera is found
+again against the keyframes; localization mode leaves the map as it was."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from eslam_core.camera import Frame
+from eslam_core.config import load_config
+from eslam_core.geometry import rotation_angle_deg
+from eslam_core.slam import SLAM
+
+FAST = {"mapping": {"first_iterations": 150}}
+
+
+def _covered(frame: Frame) -> Frame:
+    return Frame(frame.index, frame.timestamp, np.zeros_like(frame.rgb), np.zeros_like(frame.depth), frame.pose)
+
+
+def _error(pose: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    return float(np.linalg.norm(pose[:3, 3] - truth[:3, 3])), rotation_angle_deg(pose[:3, :3].T @ truth[:3, :3])
+
+
+@pytest.fixture(scope="module")
+def mapped(room_sequence):
+    """The fast preset over the first 20 frames of the room: a map and keyframes to be found against."""
+    slam = SLAM(load_config("fast", FAST), room_sequence.intrinsics)
+    for i in range(20):
+        res = slam.step(room_sequence[i])
+        assert not res.lost, f"frame {i} lost on an ordinary sequence"
+    return slam
+
+
+def test_covered_lens_and_a_jump_are_lost_never_mapped_and_found_again(room_sequence):
+    """One session: the room is mapped (frames 0-19), the lens is covered for 6 frames, uncovered, and then the
+    camera is carried from frame 29's place back to frame 5's (about a metre round the table)."""
+    slam = SLAM(load_config("fast", FAST), room_sequence.intrinsics)
+    for i in range(20):
+        assert not slam.step(room_sequence[i]).lost, f"frame {i} lost on an ordinary sequence"
+    keyframes_before = slam.trajectory.keyframes
+    lost_at = [slam.step(_covered(room_sequence[i])).lost for i in range(20, 26)]  # black, no depth
+    assert lost_at[0] or lost_at[1]  # detected within 2 frames
+    assert all(lost_at[1:]) and slam.trajectory.keyframes == keyframes_before  # never mapped
+    for i in range(26, 30):  # uncovered
+        res = slam.step(room_sequence[i])
+        if not res.lost:
+            break
+    assert not res.lost and i - 26 < 10
+    t_err, r_err = _error(res.pose, room_sequence[i].pose)
+    assert t_err < 0.02 and r_err < 1.0
+    for k in range(30 - i - 1):  # a few ordinary frames, to the end of the walk
+        assert not slam.step(room_sequence[i + 1 + k]).lost
+
+    results = []
+    for k, i in enumerate(range(5, 14)):
+        f = room_sequence[i]
+        res = slam.step(Frame(100 + k, 1.0 + (30 + k) / 30.0, f.rgb, f.depth, f.pose))
+        results.append((res.lost, _error(res.pose, f.pose), slam.trajectory.keyframes))
+    assert results[0][0] or results[1][0]  # the jump is detected within 2 frames
+    lost_frames = [k for k, r in enumerate(results) if r[0]]
+    found = next(k for k in range(lost_frames[0], len(results)) if not results[k][0])
+    assert found - lost_frames[0] <= 10
+    assert all(results[k][2] == results[lost_frames[0]][2] for k in lost_frames)  # nothing mapped while lost
+    t_err, r_err = results[-1][1]
+    assert t_err < 0.02 and r_err < 1.0
+
+
+def test_localization_mode_does_not_change_the_map(mapped, room_sequence):
+    state = mapped.state_dict()
+    state["config"]["run"]["mode"] = "localization"
+    slam = SLAM.from_state_dict(state)
+    before = {k: v.clone() for k, v in slam.map.field.state_dict().items()}
+    for i in range(10, 16):  # a loaded map starts lost: the first frames are relocalized
+        res = slam.step(room_sequence[i])
+    assert not res.lost
+    t_err, r_err = _error(res.pose, room_sequence[15].pose)
+    assert t_err < 0.02 and r_err < 1.0
+    after = slam.map.field.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert len(slam.map.keyframes) == len(mapped.map.keyframes)
