@@ -116,6 +116,14 @@ class MeshPublication:
         """Publish the mesh process's update if one is ready, every block if a subscriber is new, and start the
         next job when one is due: a new snapshot (`take_snapshot(ids of the keyframes whose depth the process
         has)`) every `period` seconds if the map version changed, else a continuation while blocks are dirty."""
+        if map_version and not self.mesher.running:
+            # Outside the lock (seconds: a new interpreter imports torch), so that reset() never waits for it.
+            try:
+                self.mesher.start()
+            except MesherCrashed as error:
+                self.figures.errors += 1
+                self.log.error(f"{error}; trying again at the next tick", throttle_duration_sec=30.0)
+                return
         with self._lock:
             try:
                 update = self.mesher.poll()

@@ -139,15 +139,17 @@ class _Worker:
         stride = thinning_stride(sum(b.triangles for b in blocks.values()), self.setup.triangle_budget)
         resend = blocks if stride != self.stride else changes.changed  # a new stride thins every block anew
         self.stride = stride
-        soups = {key: triangle_soup(blocks[key], max(stride, thinning_stride(blocks[key].triangles,
-                                                                           MAX_BLOCK_TRIANGLES)))
-                 for key in resend}
-        triangles = sum(-(-b.triangles // max(stride, thinning_stride(b.triangles, MAX_BLOCK_TRIANGLES)))
-                        for b in blocks.values())
+
+        def block_stride(block) -> int:  # the map's stride, or more for a block too big for one marker
+            return max(stride, thinning_stride(block.triangles, MAX_BLOCK_TRIANGLES))
+
+        soups = {key: triangle_soup(blocks[key], block_stride(blocks[key])) for key in resend}
+        triangles = sum(-(-b.triangles // block_stride(b)) for b in blocks.values())
         return MeshUpdate(job.epoch, soups, changes.removed, len(blocks), triangles, stride, changes.meshed,
                           changes.pending, time.monotonic() - wall, time.process_time() - cpu)
 
     def _view(self, snapshot: MeshSnapshot) -> MapView:
+        # Bytes the caller's torch.save wrote, through a private pipe (not a file): the module is unpickled whole.
         field_ = torch.load(io.BytesIO(snapshot.field), weights_only=False).eval()
         self.depths.update(snapshot.new_depths)
         missing = [k for k in snapshot.keyframe_ids if k not in self.depths]
