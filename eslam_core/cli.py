@@ -56,6 +56,8 @@ def cmd_run(args) -> int:
     from eslam_core.config import load_config
     from eslam_core.runner import run_sequence
 
+    if args.localize is not None and (args.resume is not None or args.workers != 1):
+        raise ValueError("--localize tracks against a saved map in lock-step: drop --resume and --workers 2")
     if args.catch_up_iterations is not None and args.workers != 2:
         raise ValueError("--catch-up-iterations applies to the pipelined runtime: add --workers 2 (lock-step maps "
                          "every keyframe in full)")
@@ -65,7 +67,8 @@ def cmd_run(args) -> int:
     cfg = load_config(args.config, overrides)
     ds = open_configured_dataset(cfg, Path(args.data), args.frames, args.stride)
     s = run_sequence(cfg, ds, Path(args.out), data_label=str(Path(args.data).resolve()),
-                     frames=(args.frames[0], args.frames[1], args.stride), resume=args.resume,
+                     frames=(args.frames[0], args.frames[1], args.stride), resume=args.resume or args.localize,
+                     localize=args.localize is not None,
                      progress=not args.quiet, write_mesh=not args.no_mesh, workers=args.workers, policy=args.policy,
                      runtime_options={} if args.catch_up_iterations is None else
                      {"catch_up_iterations": args.catch_up_iterations})
@@ -132,6 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--frames", type=parse_frames, default=(0, None), help="A:B, frames to run (default all)")
     r.add_argument("--stride", type=int, default=1, help="use every N-th frame")
     r.add_argument("--resume", type=Path, help="continue from a checkpoint.pt")
+    r.add_argument("--localize", type=Path, metavar="CHECKPOINT",
+                   help="track and relocalize against the map of a checkpoint.pt, which is left as it is (no "
+                        "mapping; run.mode localization)")
     r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set tracking.iterations=4 (repeatable)")
     r.add_argument("--no-mesh", action="store_true", help="skip mesh extraction")

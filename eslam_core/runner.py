@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import logging
-import resource
 import signal
 import threading
 import time
@@ -26,7 +25,9 @@ from eslam_core.evaluation.trajectory import ate
 from eslam_core.outputs.export import estimated_trajectory, ground_truth_trajectory, load_checkpoint, map_mesh, save_checkpoint, \
     write_trajectories
 from eslam_core.outputs.mesh import EmptyMeshError, save_ply
+from eslam_core.runtime.api import peak_rss_mb
 from eslam_core.slam import SLAM
+from eslam_core.trajectory import TrackedTrajectory
 
 log = logging.getLogger("eslam")
 
@@ -42,8 +43,6 @@ class RunSummary:
     stopped_by: Optional[str] = None  # the signal that ended the run early (runtime runs), None if it finished
 
 
-def peak_memory_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # ru_maxrss is KiB on Linux
 
 
 def apply_threads(cfg: Config) -> None:
@@ -61,7 +60,7 @@ def ate_cm(slam: SLAM) -> Optional[float]:
 def run_sequence(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label: str = "",
                  frames: tuple = (0, None, 1), resume: Optional[Path] = None, progress: bool = True,
                  write_mesh: bool = True, workers: int = 1, policy: str = "offline",
-                 runtime_options: Optional[dict] = None) -> RunSummary:
+                 runtime_options: Optional[dict] = None, localize: bool = False) -> RunSummary:
     """Process `dataset` (already subset to the frames to run) and write every output into `out_dir`.
 
     workers / policy / runtime_options: see eslam_core.runtime.make_runtime (1 + "offline" = the lock-step schedule
@@ -76,7 +75,12 @@ def run_sequence(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label
                                 progress=progress, write_mesh=write_mesh, workers=workers, policy=policy,
                                 options=runtime_options or {})
 
-    if resume is not None:
+    if localize:  # every frame, against the saved map (which starts lost: the camera has to be found)
+        slam = load_checkpoint(resume, mode="localization")
+        slam.trajectory = TrackedTrajectory()  # this run's frames
+        todo = list(range(len(dataset)))
+        log.info("localizing against %s: %d keyframes, map left as it is", resume, len(slam.map.keyframes))
+    elif resume is not None:
         slam = load_checkpoint(resume)
         done = {r.timestamp for r in slam.trajectory.records}
         todo = [i for i, t in enumerate(dataset.timestamps()) if t not in done]
@@ -119,7 +123,7 @@ def write_outputs(cfg: Config, slam: SLAM, dataset: RGBDDataset, out_dir: Path, 
         "seconds": seconds,
         "seconds_per_frame": seconds / max(n, 1),
         "frames_per_second": n / seconds if seconds > 0 else None,
-        "peak_memory_mb": peak_memory_mb() if peak_mb is None else peak_mb,
+        "peak_memory_mb": peak_rss_mb() if peak_mb is None else peak_mb,
         "parameter_count": slam.map.field.parameter_count() if slam.map.field is not None else 0,
         "keyframes": slam.trajectory.keyframes,
         **slam.map.memory(),
@@ -221,7 +225,7 @@ def run_with_runtime(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_l
     slam = rt.snapshot()
     health = rt.health()
     figures = rt.worker_figures() if hasattr(rt, "worker_figures") else {}
-    peak = peak_memory_mb() + figures.get("tracker_peak_mb", 0.0) + figures.get("mapper_peak_mb", 0.0)
+    peak = peak_rss_mb() + figures.get("tracker_peak_mb", 0.0) + figures.get("mapper_peak_mb", 0.0)
     extra = {"runtime": {"workers": workers, "policy": policy, "stopped_by": stop.requested,
                          "health": health.as_dict(), "workers_figures": figures,
                          "peak_memory_note": "sum of the peaks of the parent and worker processes"}}

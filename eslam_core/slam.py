@@ -66,7 +66,9 @@ class SLAM:
         tracked = self.frontend.track(pf, self.map, self.trajectory)
         pose = tracked.pose.double().numpy()
         n = len(self.trajectory)
-        self.trajectory.record(pf.index, pf.timestamp, pose, tracked.loss, pf.gt_pose, tracked.keyframe,
+        # Localization refines nothing: each frame is its own anchor (its pose as tracked).
+        anchor = tracked.keyframe or self.cfg.run.mode == "localization"
+        self.trajectory.record(pf.index, pf.timestamp, pose, tracked.loss, pf.gt_pose, anchor,
                                tracked.quality.value, tracked.lost)
         mapping_loss, refined = float("nan"), {}
         if tracked.keyframe:

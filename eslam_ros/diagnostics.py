@@ -64,6 +64,7 @@ class StatusInputs:
     measured_for_s: float = 0.0  # how long the rate has been measured (no rate warning before a full window)
     skipped_now: int = 0
     odometry_problems_now: dict[str, int] = field(default_factory=dict)  # {"odom_missing": 2, ...} this period
+    lost: Optional[str] = None  # the camera is lost: why (the newest frame's tracking quality)
 
 
 def status_level(inputs: StatusInputs, no_input_timeout: float, min_input_rate: float) -> tuple[bytes, str]:
@@ -81,6 +82,8 @@ def status_level(inputs: StatusInputs, no_input_timeout: float, min_input_rate: 
         return WARN, "waiting for the first rgb + depth + camera info"
     if inputs.state == "starting":
         return WARN, "starting the SLAM runtime"
+    if inputs.lost:
+        return WARN, f"tracking lost ({inputs.lost}): no pose published, relocalizing against the keyframes"
     if min_input_rate and inputs.measured_for_s >= INPUT_RATE_WINDOW_S and inputs.pair_rate_hz < min_input_rate:
         return WARN, f"input rate {inputs.pair_rate_hz:.1f} Hz is below {min_input_rate:g} Hz"
     if inputs.skipped_now:

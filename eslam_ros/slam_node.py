@@ -333,9 +333,21 @@ def pose_stamped(pose: np.ndarray, stamp: Any, frame_id: str) -> PoseStamped:
     return msg
 
 
+# Pose covariance of ~/odom (x y z roll pitch yaw): a well-tracked pose is good to about a centimetre and half a
+# degree, divided by its tracking quality; a lost one is unknown.
+TRACKED_SIGMA = (0.01, 0.01, 0.01, 0.01, 0.01, 0.01)
+LOST_VARIANCE = 1e6
+
+
+def pose_covariance(quality: float, lost: bool) -> list[float]:
+    variances = [LOST_VARIANCE] * 6 if lost else [(s / max(quality, 0.05)) ** 2 for s in TRACKED_SIGMA]
+    return [float(v) if i % 7 == 0 else 0.0 for i, v in enumerate(np.diag(variances).reshape(-1))]
+
+
 def odometry(pose: np.ndarray, twist: tuple[np.ndarray, np.ndarray], stamp: Any, frame_id: str,
-             child_frame_id: str) -> Odometry:
+             child_frame_id: str, quality: float = 1.0, lost: bool = False) -> Odometry:
     msg = Odometry(child_frame_id=child_frame_id)
+    msg.pose.covariance = pose_covariance(quality, lost)
     msg.header.stamp = stamp
     msg.header.frame_id = frame_id
     msg.pose.pose = pose_to_msg(pose)
@@ -441,6 +453,7 @@ class _Outputs:
     poses: int = 0
     paths: int = 0
     poses_invalid: int = 0  # poses that were not rigid transforms (NaN, not a rotation): not published, counted
+    poses_lost: int = 0  # frames tracked while lost: ~/odom only, with an unknown covariance
     restarts: int = 0
     dropped_while_starting: int = 0
     latency: _Latency = field(default_factory=_Latency)
@@ -491,6 +504,7 @@ class SlamNode(Node):
         self._camera_frame = ""  # the image frame_id (the camera optical frame), once known
         self._previous_pose: Optional[tuple[np.ndarray, float]] = None
         self._last_position = np.zeros(3)  # of the camera in map_frame, where the status text floats
+        self._lost = False  # the newest pose update said the camera is lost
         self._last_image = time.monotonic()
         self._skipped_at_last_status = 0
         self._odometry_problems_at_last_status: dict[str, int] = {}
@@ -795,7 +809,7 @@ class SlamNode(Node):
             twist = twist_between(previous_output[0], previous[1], output_pose, update.timestamp)
         try:
             pose, odom = pose_stamped(output_pose, stamp, map_frame), odometry(output_pose, twist, stamp, map_frame,
-                                                                               child)
+                                                                               child, update.quality, update.lost)
             tf = self._tf_of(update.pose, frame_odometry, stamp, child)
         except InvalidPoseError as error:  # NaN or not a rotation at all (drift is re-orthonormalised): skip it
             self.outputs.poses_invalid += 1
@@ -803,6 +817,11 @@ class SlamNode(Node):
                 self.get_logger().warning(
                     f"pose of frame {update.index} not published: {error} [{self.outputs.poses_invalid} invalid "
                     f"poses skipped, {self.outputs.poses} published so far; publishing goes on]")
+            return
+        self._lost = update.lost
+        if update.lost:  # no pose to act on: ~/odom says so with its covariance, ~/pose and TF wait
+            self.odom_pub.publish(odom)
+            self.outputs.poses_lost += 1
             return
         self.pose_pub.publish(pose)
         self.odom_pub.publish(odom)
@@ -896,6 +915,7 @@ class SlamNode(Node):
         values["skipped_total"] = sum(self.pipeline.skipped.values())
         values["poses_published"] = self.outputs.poses
         values["poses_invalid"] = self.outputs.poses_invalid
+        values["poses_lost"] = self.outputs.poses_lost
         values.update(self.mesh.status())
         values["stream_restarts"] = self.outputs.restarts
         values["frames_dropped_while_starting"] = self.outputs.dropped_while_starting
@@ -931,7 +951,8 @@ class SlamNode(Node):
             failed=self.failed, state=values["runtime"], poses=self.outputs.poses,
             silent_s={name: self.inputs.silent_for(name, now) for name in self._watched_inputs()} if self.active
             else {}, pair_rate_hz=values["input_rate_hz"], measured_for_s=now - self.inputs.started,
-            skipped_now=skipped_now, odometry_problems_now=problems_now if self.odometry else {}),
+            skipped_now=skipped_now, odometry_problems_now=problems_now if self.odometry else {},
+            lost=f"quality {values.get('tracking_quality', 0.0):.2f}" if self._lost else None),
             s.no_input_timeout, s.min_input_rate)
         msg = diagnostic_array(self.diagnostic_name(), s.diagnostics_hardware_id, level, summary, values,
                                self.get_clock().now().to_msg())

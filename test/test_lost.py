@@ -79,3 +79,23 @@ def test_localization_mode_does_not_change_the_map(mapped, room_sequence):
     after = slam.map.field.state_dict()
     assert all(torch.equal(before[k], after[k]) for k in before)
     assert len(slam.map.keyframes) == len(mapped.map.keyframes)
+
+
+def test_eslam_run_localize_leaves_the_saved_map_as_it_is(mapped, room_sequence, tmp_path):
+    """`eslam run --localize CHECKPOINT`: frames of the same scene are found in the saved map, which stays as it
+    was (its bytes compared)."""
+    from eslam_core.cli import main
+    from eslam_core.outputs.export import load_checkpoint, save_checkpoint
+    from eslam_core.evaluation.trajectory import read_tum
+
+    saved = save_checkpoint(mapped, tmp_path / "map.pt")
+    before = saved.read_bytes()
+    code = main(["run", "--config", "fast", "--data", str(room_sequence.root), "--out", str(tmp_path / "loc"),
+                 "--frames", "8:14", "--localize", str(saved), "--no-mesh", "-q"])
+    assert code == 0 and saved.read_bytes() == before
+    est, gt = read_tum(tmp_path / "loc" / "trajectory.txt"), read_tum(tmp_path / "loc" / "groundtruth.txt")
+    assert len(est.timestamps) == 6
+    assert np.linalg.norm(est.poses[-1][:3, 3] - gt.poses[-1][:3, 3]) < 0.02
+    again = load_checkpoint(tmp_path / "loc" / "checkpoint.pt")
+    assert all(torch.equal(a, b) for a, b in zip(again.map.field.state_dict().values(),
+                                                 mapped.map.field.state_dict().values()))

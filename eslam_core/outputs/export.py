@@ -23,9 +23,12 @@ def save_checkpoint(slam: SLAM, path: Path) -> Path:
     return path
 
 
-def load_checkpoint(path: Path) -> SLAM:
-    """The SLAM state saved in a checkpoint, read safely (map_file.py): errors are one CheckpointError line."""
+def load_checkpoint(path: Path, mode: str | None = None) -> SLAM:
+    """The SLAM state saved in a checkpoint, read safely (map_file.py): errors are one CheckpointError line.
+    `mode` ("slam" or "localization") replaces the saved run.mode."""
     state = read_checkpoint(path, CHECKPOINT_VERSION)
+    if mode is not None:
+        state["config"]["run"]["mode"] = mode
     try:
         return SLAM.from_state_dict(state)
     except (KeyError, IndexError, TypeError, ValueError, RuntimeError, AttributeError) as e:

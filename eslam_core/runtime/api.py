@@ -15,9 +15,10 @@ Input policies decide what happens when frames arrive faster than they can be tr
 from __future__ import annotations
 
 import inspect
+import resource
 import time
 from collections import deque
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Optional, Protocol, runtime_checkable
 
@@ -72,6 +73,15 @@ class Health:
     # The cost of keeping tracker and mapper consistent (multi-process only; 0 otherwise), mean per call.
     map_publish_ms: float = 0.0
     map_read_ms: float = 0.0
+    # The newest tracked frame's quality (tracking/quality.py), and whether the camera is lost.
+    tracking_quality: float = 1.0
+    tracking_lost: bool = False
+    # Where memory goes: the map's parameters, the keyframe store (bounded by mapping.keyframe_budget_mb), the
+    # keyframes it holds, and the peak resident memory of each process of the runtime (MB).
+    map_bytes: int = 0
+    keyframe_bytes: int = 0
+    keyframes_kept: int = 0
+    peak_memory_mb: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -102,6 +112,11 @@ class SLAMRuntime(Protocol):
     def __enter__(self) -> "SLAMRuntime": ...
 
     def __exit__(self, *exc) -> None: ...
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process (ru_maxrss is KiB on Linux)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def check_policy(policy: str) -> str:

@@ -30,7 +30,7 @@ from eslam_core.slam import SLAM
 from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
 from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, \
-    check_frame, check_policy
+    check_frame, check_policy, peak_rss_mb
 
 log = logging.getLogger("eslam")
 
@@ -68,6 +68,7 @@ class InProcessRuntime(SavingMixin):
     def _new_map(self) -> None:
         self.slam = SLAM(self.cfg, self.intrinsics)
         self._mirror = TrackedTrajectory()  # what the caller reads while a step runs
+        self._memory = {"map_bytes": 0, "keyframe_bytes": 0, "keyframes_kept": 0}
         self._updates: list[PoseUpdate] = []
         self._tracking_rate, self._mapping_rate, self._latency = RateMeter(), RateMeter(), LatencyMeter()
 
@@ -128,9 +129,12 @@ class InProcessRuntime(SavingMixin):
         with self._cond:
             pending, c = len(self._inputs), dict(self._counts)
         with self._lock:
+            last = self._mirror.records[-1] if len(self._mirror) else None
             return Health(c["received"], c["tracked"], c["dropped"], self._mirror.keyframes, self._tracking_rate.rate(),
                           self._mapping_rate.rate(), pending, 0, c["mapping_steps"], self._latency.last_ms,
-                          self._latency.mean_ms)
+                          self._latency.mean_ms, tracking_quality=last.quality if last else 1.0,
+                          tracking_lost=last.lost if last else False, **self._memory,
+                          peak_memory_mb={"process": peak_rss_mb()})
 
     def snapshot(self) -> SLAM:
         """A copy of the SLAM state between two steps (after close(), the final state itself)."""
@@ -225,6 +229,9 @@ class InProcessRuntime(SavingMixin):
                 with self._lock:
                     if epoch == self._epoch:  # else a reset came in after the step: it belongs to the old map
                         self._mirror.append(record, res.keyframe)
+                        if res.keyframe:
+                            memory = self.slam.map.memory()
+                            self._memory = {k: memory[k] for k in ("map_bytes", "keyframe_bytes", "keyframes_kept")}
                         self._mirror.refine(res.refined)
                         self._updates.append(PoseUpdate(res.index, frame.timestamp, res.pose, res.tracking_loss,
                                                         res.keyframe, done - arrival, res.quality, res.lost))

@@ -53,7 +53,7 @@ from eslam_core.slam import SLAM
 from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
 from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, \
-    check_frame, check_policy
+    check_frame, check_policy, peak_rss_mb
 from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta
 from eslam_core.runtime.workers import EXIT_ORPHANED, STOP_SIGNALS, Channels, MapperFinished, MapperSnapshot, MappingReport, SnapshotRequest, \
     TrackedFrame, TrackerFinished, WorkerReady, WorkerSetup, mapper_main, tracker_main
@@ -157,6 +157,7 @@ class MultiProcessRuntime(SavingMixin):
     def _reset_parent_state(self, epoch: int) -> None:
         self._epoch = epoch
         self._mirror = TrackedTrajectory()
+        self._last_quality = (1.0, False)
         self._updates: list[PoseUpdate] = []
         self._tracking_rate = RateMeter()
         self._mapping_rate = RateMeter()
@@ -333,6 +334,7 @@ class MultiProcessRuntime(SavingMixin):
         if isinstance(msg, TrackedFrame):
             r = msg.record
             self._mirror.append(r, msg.keyframe)
+            self._last_quality = (r.quality, r.lost)
             # The tracker's newest frame has no next keyframe to blend with: its pose is the pose as tracked.
             self._updates.append(PoseUpdate(r.index, r.timestamp, r.tracked, r.tracking_loss, msg.keyframe,
                                             msg.latency_s, r.quality, r.lost))
@@ -426,6 +428,11 @@ class MultiProcessRuntime(SavingMixin):
                 latency_ms_mean=self._latency.mean_ms,
                 map_publish_ms=1000.0 * b.get(Counter.PUBLISH_SECONDS) / max(b.get(Counter.PUBLISHES), 1.0),
                 map_read_ms=1000.0 * b.get(Counter.READ_SECONDS) / max(b.get(Counter.READS), 1.0),
+                tracking_quality=self._last_quality[0], tracking_lost=self._last_quality[1],
+                map_bytes=int(b.get(Counter.MAP_BYTES)), keyframe_bytes=int(b.get(Counter.KEYFRAME_BYTES)),
+                keyframes_kept=int(b.get(Counter.KEYFRAMES_KEPT)),
+                peak_memory_mb={"parent": peak_rss_mb(), "tracker": b.get(Counter.TRACKER_PEAK_MB),
+                                "mapper": b.get(Counter.MAPPER_PEAK_MB)},
             )
 
     def worker_figures(self) -> dict:

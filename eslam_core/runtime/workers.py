@@ -41,7 +41,6 @@ import io
 import logging
 import os
 import queue
-import resource
 import signal
 import sys
 import threading

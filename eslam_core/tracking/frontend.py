@@ -72,6 +72,7 @@ class TrackingFrontEnd:
         self.recent_losses: deque = deque(maxlen=30)  # of well-tracked frames: the residual score's reference
         self.since_keyframe = 0
         self.unindexed: list = []  # keyframes of a loaded map not in `places` yet
+        self.fallback_pose = np.eye(4)
         self.places = None  # the keyframes for relocalization (a KeyframeDatabase), when enabled
         if cfg.relocalization.enabled and self.tracker is not None:
             from eslam_core.tracking.relocalization import KeyframeDatabase  # (OpenCV: loaded only when used)
@@ -83,6 +84,8 @@ class TrackingFrontEnd:
         (those with every pixel: a reduced keyframe is too coarse for ORB), indexed when first needed."""
         self.lost, self.good = True, []
         self.unindexed = [kf for kf in keyframes if kf.stride == 1]
+        if len(keyframes):  # the prior of a first frame that no keyframe explains: where the map ended
+            self.fallback_pose = keyframes[-1].pose.double().numpy()
 
     def remember(self, number: int, pf: PreparedFrame, pose) -> None:
         """A new keyframe, for relocalization."""
@@ -119,6 +122,8 @@ class TrackingFrontEnd:
     def predict(self, pf: PreparedFrame, trajectory: TrackedTrajectory) -> tuple[np.ndarray, float]:
         """The predicted pose (from the last well-tracked frames only) and the time since the last of them in
         units of the usual frame gap."""
+        if len(trajectory) == 0:
+            return self.fallback_pose, 1.0
         last = self.good[-1] if self.good else len(trajectory) - 1
         prev = trajectory.pose(last)
         gap = 1.0
