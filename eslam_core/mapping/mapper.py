@@ -96,7 +96,8 @@ class Mapper:
             if not drawn:
                 break
             d_gt_host = torch.cat(d_gt)
-            all_depth = bool((d_gt_host > 0).all())  # known here, so the renderer need not ask the device
+            # The rays without depth are known here: the renderer need not ask the device for them.
+            missing = upload(torch.nonzero(d_gt_host <= 0).squeeze(1), device)
             counts = [n for _, n in drawn]
             rays_dirs = self.dirs_cam[upload(torch.cat(frame_pix), device)].split(counts)
             origins, dirs = [], []
@@ -106,7 +107,7 @@ class Mapper:
                 origins.append(c2w[:3, 3].expand(n, 3))
             d_gt_all = upload(d_gt_host, device)
             out = render_rays(field, torch.cat(origins), torch.cat(dirs), d_gt_all, self.cfg.render,
-                              self.cfg.model.truncation, all_depth)
+                              self.cfg.model.truncation, missing)
             loss = eslam_losses(out, d_gt_all, upload(torch.cat(rgb_gt), device), self.cfg.model.truncation
                                 ).total(mc.weights)
             optim.zero_grad(set_to_none=True)

@@ -36,16 +36,17 @@ def render_weights(alpha: torch.Tensor) -> torch.Tensor:
 
 
 def sample_depths(field: RadianceField, origins: torch.Tensor, dirs: torch.Tensor, depth_gt: torch.Tensor,
-                  cfg: RenderConfig, truncation: float, all_depth: bool | None = None) -> torch.Tensor:
+                  cfg: RenderConfig, truncation: float, missing: torch.Tensor | None = None) -> torch.Tensor:
     """Sorted sample depths (R, N_strat + N_imp): stratified plus near-surface (with depth) or importance samples.
 
-    `all_depth`: whether every ray has depth, when the caller knows it on the host; asking the tensor instead
-    makes the host wait for the device's queued work (a GPU run's tracking and mapping iterations would).
+    `missing`: the indices of the rays without depth, on the rays' device, when the caller knows them from host
+    data; finding them here makes the host wait for the device's queued work (each GPU tracking or mapping
+    iteration would).
     """
     has_depth = depth_gt > 0
-    if all_depth is None:
-        all_depth = bool(has_depth.all())
-    if all_depth:
+    if missing is None:
+        missing = torch.nonzero(~has_depth).squeeze(1)
+    if len(missing) == 0:
         far = cfg.depth_far_factor * depth_gt
     else:
         bmin, bmax = field.bound_min, field.bound_max
@@ -55,8 +56,7 @@ def sample_depths(field: RadianceField, origins: torch.Tensor, dirs: torch.Tenso
     if cfg.n_importance == 0:
         return z
     z_extra = near_surface(depth_gt, cfg.n_importance, cfg.surface_band * truncation)
-    if not all_depth:
-        missing = ~has_depth
+    if len(missing):
         with torch.no_grad():
             o, d, zs = origins[missing], dirs[missing], z[missing]
             sdf = field.sdf((o[:, None, :] + zs[..., None] * d[:, None, :]).reshape(-1, 3)).reshape(zs.shape)
@@ -67,10 +67,10 @@ def sample_depths(field: RadianceField, origins: torch.Tensor, dirs: torch.Tenso
 
 
 def render_rays(field: RadianceField, origins: torch.Tensor, dirs: torch.Tensor, depth_gt: torch.Tensor,
-                cfg: RenderConfig, truncation: float, all_depth: bool | None = None) -> RenderOutput:
+                cfg: RenderConfig, truncation: float, missing: torch.Tensor | None = None) -> RenderOutput:
     """Render depth and colour of rays (R,3) origins / directions with planar-unit directions (on the field's
-    device). `all_depth`: see sample_depths."""
-    z = sample_depths(field, origins.detach(), dirs.detach(), depth_gt, cfg, truncation, all_depth)
+    device). `missing`: see sample_depths."""
+    z = sample_depths(field, origins.detach(), dirs.detach(), depth_gt, cfg, truncation, missing)
     points = origins[:, None, :] + z[..., None] * dirs[:, None, :]
     flat = points.reshape(-1, 3)
     sdf = field.sdf(flat).reshape(z.shape)

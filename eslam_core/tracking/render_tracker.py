@@ -105,13 +105,13 @@ class Tracker:
         best_loss = torch.full((), float("inf"), device=device)
         best_inliers = torch.full((), float("nan"), device=device)
         fixed = FrozenField(field)  # the map does not change while tracking
+        no_rays = torch.zeros(0, dtype=torch.long, device=device)  # without depth: every candidate pixel has depth
         for _ in range(tc.iterations):
             pix = candidates[torch.randint(len(candidates), (tc.rays,), device=device)]
             c2w = params_to_pose(t, q)
             origins, dirs = rays_to_world(self.dirs_cam[pix], c2w)
             d_gt = depth[pix]
-            # Every candidate pixel has depth (all_depth: the renderer need not ask the device).
-            out = render_rays(fixed, origins, dirs, d_gt, self.cfg.render, self.cfg.model.truncation, all_depth=True)
+            out = render_rays(fixed, origins, dirs, d_gt, self.cfg.render, self.cfg.model.truncation, no_rays)
             error = (out.depth.detach() - d_gt).abs()
             keep = outlier_mask(error, tc.outlier_factor)
             loss = eslam_losses(out, d_gt, rgb[pix], self.cfg.model.truncation, keep).total(tc.weights)
