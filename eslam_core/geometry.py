@@ -90,6 +90,28 @@ def depth_points_world(dirs_cam: torch.Tensor, depth: torch.Tensor, c2w: torch.T
     return dirs_cam * depth[:, None] @ c2w[:3, :3].T + c2w[:3, 3]
 
 
+def rotvec_to_matrix(rotvec) -> np.ndarray:
+    """Rodrigues' formula (numpy): the rotation matrix of a rotation vector (axis * angle in radians)."""
+    rotvec = np.asarray(rotvec, dtype=np.float64)
+    angle = float(np.linalg.norm(rotvec))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = rotvec / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+
+
+def so3_exp(w: torch.Tensor) -> torch.Tensor:
+    """Rodrigues' formula (torch, on w's device): the rotation matrix of the rotation vector w."""
+    theta = w.norm()
+    K = torch.zeros(3, 3, dtype=w.dtype, device=w.device)
+    K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -w[2], w[1], w[2], -w[0], -w[1], w[0]
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    if theta < 1e-9:
+        return eye + K
+    return eye + torch.sin(theta) / theta * K + (1 - torch.cos(theta)) / theta**2 * K @ K
+
+
 def scale_motion(M: np.ndarray, factor: float) -> np.ndarray:
     """A rigid motion repeated `factor` times (rotation angle and translation scaled): velocity x time.
     (Rodrigues' formula in numpy: scipy's Rotation costs ~20x more, and a trajectory calls this once per frame.)"""
@@ -105,9 +127,7 @@ def scale_motion(M: np.ndarray, factor: float) -> np.ndarray:
         out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(R).as_rotvec() * factor).as_matrix()
         return out
     axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2 * np.sin(angle))
-    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    theta = factor * angle
-    out[:3, :3] = np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
+    out[:3, :3] = rotvec_to_matrix(axis * factor * angle)
     return out
 
 

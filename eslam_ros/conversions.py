@@ -29,7 +29,7 @@ from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
 from std_msgs.msg import Header
 
 from eslam_core.camera import Intrinsics
-from eslam_core.geometry import orthonormalize
+from eslam_core.geometry import matrix_to_quaternion_xyzw, orthonormalize, quaternion_xyzw_to_matrix
 
 
 class UnsupportedImageError(ValueError):
@@ -309,39 +309,9 @@ def camera_info_from_intrinsics(intr: Intrinsics, stamp: Stamp, frame_id: str) -
 # ------------------------------------------------------------------------------------------------ poses
 
 
-def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix.
-
-    Shepperd's method: the square root is taken of the largest of 4w^2, 4x^2, 4y^2, 4z^2 (read off the trace and
-    diagonal), so it never divides by a small number and stays accurate for every rotation.
-    """
-    r = rotation
-    trace = r[0, 0] + r[1, 1] + r[2, 2]
-    four_sq = np.array([1 + trace, 1 + 2 * r[0, 0] - trace, 1 + 2 * r[1, 1] - trace, 1 + 2 * r[2, 2] - trace])
-    largest = int(np.argmax(four_sq))
-    s = 2.0 * math.sqrt(four_sq[largest])  # = 4 * |that component|
-    if largest == 0:
-        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
-    elif largest == 1:
-        q = [s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
-    elif largest == 2:
-        q = [(r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
-    else:
-        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4, (r[1, 0] - r[0, 1]) / s]
-    q = np.array(q) / np.linalg.norm(q)
-    return -q if q[3] < 0 else q  # q and -q are the same rotation; w >= 0 makes it unique (but for w = 0)
-
-
-def quaternion_to_rotation(q_xyzw: np.ndarray) -> np.ndarray:
-    """3x3 rotation matrix of a unit quaternion (x, y, z, w)."""
-    x, y, z, w = q_xyzw
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+# One home for the quaternion formulas (eslam_core.geometry); these are the names the node and tests use.
+rotation_to_quaternion = matrix_to_quaternion_xyzw
+quaternion_to_rotation = quaternion_xyzw_to_matrix
 
 
 # Rotations drift from orthonormal (float32 optimiser output, poses composed over thousands of frames): the nearest

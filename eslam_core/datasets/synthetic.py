@@ -29,7 +29,7 @@ from PIL import Image
 from scipy import ndimage
 
 from eslam_core.camera import Intrinsics
-from eslam_core.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
+from eslam_core.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix, rotvec_to_matrix
 from eslam_core.rendering.raycast import camera_rays, cast_rays
 
 FPS = 30.0  # frame rate of written sequences: timestamps are index / FPS
@@ -406,14 +406,7 @@ def _assemble(parts: dict[str, list[trimesh.Trimesh]], bound: np.ndarray, seed: 
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def axis_angle_to_rotation(rotvec: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula: rotation matrix of a rotation vector (axis * angle in radians)."""
-    angle = float(np.linalg.norm(rotvec))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = np.asarray(rotvec) / angle
-    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * cross @ cross
+axis_angle_to_rotation = rotvec_to_matrix  # (one Rodrigues: eslam_core.geometry)
 
 
 def look_at(eye, target, roll_rad: float = 0.0, up=(0.0, 0.0, 1.0)) -> np.ndarray:

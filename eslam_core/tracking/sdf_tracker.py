@@ -32,6 +32,7 @@ from eslam_core.config import Config
 from eslam_core.cpu import denormals_flushed
 from eslam_core.representation.field import FrozenField, RadianceField, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
+from eslam_core.geometry import so3_exp
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSpace
 from eslam_core.tracking.photometric import Reference, grey_pyramid, photometric_residuals, sample, to_grey
@@ -39,17 +40,6 @@ from eslam_core.tracking.render_tracker import TrackingResult
 
 SATURATED_COLOR = 3.0  # the colour penalty of a saturated point, in units of its Huber scale
 SATURATED_COST = SATURATED_COLOR - 0.5  # its Huber cost (huber_cost of SATURATED_COLOR)
-
-
-def so3_exp(w: torch.Tensor) -> torch.Tensor:
-    """Rotation matrix of the rotation vector w (Rodrigues)."""
-    theta = w.norm()
-    K = torch.zeros(3, 3, dtype=w.dtype, device=w.device)
-    K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -w[2], w[1], w[2], -w[0], -w[1], w[0]
-    eye = torch.eye(3, dtype=w.dtype, device=w.device)
-    if theta < 1e-9:
-        return eye + K
-    return eye + torch.sin(theta) / theta * K + (1 - torch.cos(theta)) / theta**2 * K @ K
 
 
 def huber_weights(r: torch.Tensor) -> torch.Tensor:
