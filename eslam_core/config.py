@@ -249,6 +249,7 @@ class QualityConfig:
     inliers_high: float = 0.6  # ... and 1
     residual_high: float = 2.0  # loss / typical loss where the residual score starts to fall ...
     residual_low: float = 4.0  # ... and where it is 0
+    residual_observed_below: float = 0.7  # the residual counts only when fewer of the points are in observed space
     correction_m: float = 0.15  # correction of the prediction per frame gap where the motion score starts to fall
     correction_deg: float = 15.0  # (it is 0 at twice these)
     lost_below: float = 0.5

@@ -57,7 +57,8 @@ def test_each_piece_of_evidence_names_itself():
     assert off_map.lost and "lie on the map" in off_map.reason and "mostly new" in off_map.reason
     disagrees = tracking_quality(evidence(inliers=0.15, observed=0.9))
     assert "map disagrees" in disagrees.reason
-    residual = tracking_quality(evidence(loss=2.2))  # 5x the typical loss, all else fine
+    assert not tracking_quality(evidence(loss=2.2)).lost  # 5x the typical loss, the points where the map is
+    residual = tracking_quality(evidence(loss=2.2, observed=0.5))  # 5x, and half the points off the mapped space
     assert residual.lost and "5.0x" in residual.reason
     runaway = tracking_quality(evidence(corr=(0.5, 3.0)))  # the 50 cm jump in one frame
     assert runaway.lost and "50 cm" in runaway.reason

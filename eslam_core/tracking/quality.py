@@ -73,7 +73,10 @@ def tracking_quality(e: TrackingEvidence, cfg: Optional[QualityConfig] = None) -
         scores["inliers"] = (ramp(e.inlier_fraction, cfg.inliers_low, cfg.inliers_high),
                              f"{100 * e.inlier_fraction:.0f}% of the depth points lie on the map"
                              + _observed_note(e.observed_fraction))
-    if e.typical_loss is not None and e.typical_loss > 0:
+    # A high loss alone is not enough: on ICL-NUIM replayed back and forth, well-tracked frames of well-mapped space
+    # reached 9-15x the recent loss. It counts when the points also leave observed space (a jump: 42 % observed).
+    in_mapped_space = math.isfinite(e.observed_fraction) and e.observed_fraction >= cfg.residual_observed_below
+    if e.typical_loss is not None and e.typical_loss > 0 and not in_mapped_space:
         ratio = e.loss / e.typical_loss
         scores["residual"] = (1.0 - ramp(ratio, cfg.residual_high, cfg.residual_low),
                               f"loss {ratio:.1f}x the recent frames'")
