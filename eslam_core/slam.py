@@ -75,6 +75,7 @@ class SLAM:
             number = self.trajectory.keyframes - 1
             self.frontend.remember(number, pf, tracked.pose)
             self.map.add_keyframe(new_keyframe(pf, tracked.pose, number))
+            self.frontend.forget(self.map.keyframes.take_dropped())
             step = self.map.map_newest(self.stop_mapping_early)
             self.trajectory.refine(step.refined)
             self.frontend.refine(step.refined)

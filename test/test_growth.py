@@ -98,6 +98,8 @@ def test_a_camera_standing_still_does_not_fill_the_store():
         kf.pose = torch.eye(4)
         store.append(kf, intr, points)
     assert len(store) <= 5 and store.dropped >= 35 and store[-1].number == 39
+    gone = store.take_dropped()  # what the relocalization index forgets
+    assert len(gone) == store.dropped and not set(gone) & {kf.number for kf in store} and not store.take_dropped()
 
 
 def test_reduced_keyframe_reads_the_frames_pixels():

@@ -108,6 +108,7 @@ class KeyframeStore:
         self.made = 0  # keyframes ever added (the next keyframe's number)
         self.reduced = 0
         self.dropped = 0
+        self.dropped_numbers: list[int] = []  # dropped since the owner last took them (take_dropped)
 
     def __len__(self) -> int:
         return len(self.items)
@@ -146,8 +147,10 @@ class KeyframeStore:
                 victim = int(overlap.argmax())
             else:
                 victim = 0
-            total -= self.items.pop(victim).nbytes()
+            gone = self.items.pop(victim)
+            total -= gone.nbytes()
             self.dropped += 1
+            self.dropped_numbers.append(gone.number)
 
     def _drop_redundant(self, kf: Keyframe, points: torch.Tensor, intr: Intrinsics) -> None:
         old = len(self.items) - self.keep_full
@@ -163,8 +166,13 @@ class KeyframeStore:
         overlap = overlap_fractions(points, poses[candidates], intr, margin=0)
         best = int(overlap.argmax())
         if float(overlap[best]) >= REDUNDANT_OVERLAP:
-            self.items.pop(int(candidates[best]))
+            self.dropped_numbers.append(self.items.pop(int(candidates[best])).number)
             self.dropped += 1
+
+    def take_dropped(self) -> list[int]:
+        """Numbers of the keyframes dropped since the last call (for what indexes keyframes elsewhere)."""
+        out, self.dropped_numbers = self.dropped_numbers, []
+        return out
 
     def replace_all(self, keyframes: list[Keyframe]) -> None:
         self.items = list(keyframes)

@@ -135,6 +135,7 @@ class MapAttach:  # mapper -> tracker, after the warm-up and after every growth:
 class RefinedPoses:  # mapper -> tracker
     epoch: int
     poses: dict  # keyframe number -> (4, 4) float32
+    dropped: list = field(default_factory=list)  # keyframe numbers the store dropped (see keyframes.py)
 
 
 @dataclass
@@ -436,6 +437,7 @@ class TrackerWorker:
                     self.trajectory.refine(msg.poses)
                     self.replica.refine(msg.poses)
                     self.frontend.refine(msg.poses)
+                    self.frontend.forget(msg.dropped)
             msg = _get(self.ch.to_tracker, 0.0)
 
     def _wait_for_map(self) -> None:
@@ -627,8 +629,9 @@ class MapperWorker:
                   time.perf_counter() - start, torch.get_num_threads(), version)
         if attach:
             self.ch.to_tracker.put(MapAttach(self.epoch, self.map.buffers, self.map.generation, self.scene.extent))
-        if refined:
-            self.ch.to_tracker.put(RefinedPoses(self.epoch, refined))
+        dropped = self.scene.keyframes.take_dropped()
+        if refined or dropped:
+            self.ch.to_tracker.put(RefinedPoses(self.epoch, refined, dropped))
         self.steps_in_epoch += 1
         self.steps += 1
         board = self.ch.board

@@ -92,6 +92,13 @@ class TrackingFrontEnd:
         if self.places is not None:
             self.places.add(number, rgb8(pf), pf.depth.numpy(), pose, self.intr)
 
+    def forget(self, numbers) -> None:
+        """Keyframes the map's store dropped (as redundant or over its budget) are not relocalized against: the
+        index stays the size of the store, not of the time spent."""
+        if self.places is not None:
+            for number in numbers:
+                self.places.remove(number)
+
     def _index_loaded_keyframes(self) -> None:
         for kf in self.unindexed:
             self.places.add(kf.number, kf.rgb.numpy(), kf.depth_image().numpy(), kf.pose, self.intr)
