@@ -63,6 +63,7 @@ from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.mapping.scene_map import SceneMap, initial_extent, surface_points
 from eslam_core.native import load_kernel
 from eslam_core.representation.field import SceneField
+from eslam_core.runtime.api import peak_rss_mb
 from eslam_core.slam import new_keyframe
 from eslam_core.tracking.frontend import TrackingFrontEnd
 from eslam_core.trajectory import FrameRecord, TrackedTrajectory
@@ -285,10 +286,6 @@ def run_worker(name: str, body, setup: WorkerSetup, errors) -> None:
         sys.stderr.flush()
         # Skip interpreter teardown: queue feeder threads would wait for a parent that may no longer read.
         os._exit(code)
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def working_setup(cfg: Config, intrinsics: Intrinsics) -> tuple[Config, Intrinsics]:
