@@ -16,14 +16,25 @@ it), ATE RMSE, peak GPU memory (torch.cuda.max_memory_allocated of each process 
 and for the pipelined run the tracker's and the mapper's), next to the paper's 0.18 s per frame (RTX 3090) and our
 CPU figures, and whether the targets hold (faster than the paper, ATE within 10 % of the CPU run). Writes
 OUT/gpu.json and OUT/gpu.md.
+
+On a lent device machine (no network, its own python3 with a CUDA torch, ../shared not sent, 64 MiB per call): the
+sequence (135 MB) travels in parts, in calls close enough together that the machine stays warm, and the few
+packages its image lacks (trimesh, rtree, embreex) as wheels (see the device tool's README):
+
+    python bench/gpu.py --pack .gpu --part-mb 40          # here: .gpu/icl_1 ... icl_4, each under 40 MB
+    # device calls, one after the other: carry [".gpu/icl_1"], then [".gpu/icl_2"], ...; the last one carries the
+    # last part and .whl, installs the wheels to /tmp/site and runs
+    PYTHONPATH=/tmp/site:. python3 bench/gpu.py --data .gpu/icl_1,.gpu/icl_2,.gpu/icl_3,.gpu/icl_4
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -98,8 +109,47 @@ def checks(args) -> dict:
     return out
 
 
-def cell(v, fmt: str) -> str:
-    return "n/a" if v is None else format(v, fmt)
+def pack(data: Path, out: Path, part_mb: float) -> list[Path]:
+    """Copy the sequence into parts of at most `part_mb` MB (the small text files in the first), for transfers
+    with a size limit; `merged` puts them together again."""
+    files = sorted(p for p in data.rglob("*") if p.is_file())
+    parts: list[list[Path]] = [[]]
+    size = 0
+    for f in sorted(files, key=lambda f: (f.parent != data, str(f))):  # associations, ground truth first
+        n = f.stat().st_size
+        if parts[-1] and size + n > part_mb * 2**20:
+            parts.append([])
+            size = 0
+        parts[-1].append(f)
+        size += n
+    folders = []
+    for k, members in enumerate(parts, 1):
+        folder = out / f"icl_{k}"
+        for f in members:
+            target = folder / f.relative_to(data)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(f, target)
+        folders.append(folder)
+        print(f"{folder}: {len(members)} files, {sum(f.stat().st_size for f in members) / 2**20:.1f} MB")
+    return folders
+
+
+def merged(parts: list[Path]) -> Path:
+    """One folder of links to the files of every part (the parts of `pack`, or a single folder as it is)."""
+    if len(parts) == 1:
+        return parts[0]
+    root = Path(tempfile.mkdtemp(prefix="icl_"))
+    for part in parts:
+        for f in part.rglob("*"):
+            if f.is_file():
+                target = root / f.relative_to(part)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                target.symlink_to(f.resolve())
+    return root
+
+
+def cell(v, fmt: str, unit: str = "") -> str:
+    return "n/a" if v is None else format(v, fmt) + unit
 
 
 def table(results: list[dict]) -> str:
@@ -113,7 +163,7 @@ def table(results: list[dict]) -> str:
             continue
         parts = ", ".join(f"{k} {v:.0f}" for k, v in r["peak_gpu_mb"].items())
         rows.append(f"| ours, {r['device']} {r['mode']} ({r['frames']} frames) | {r['s_per_frame']:.3f} | "
-                    f"{cell(r['ate_cm'], '.2f')} cm | {r['peak_gpu_mb_total']:.0f} MB ({parts}) |")
+                    f"{cell(r['ate_cm'], '.2f', ' cm')} | {r['peak_gpu_mb_total']:.0f} MB ({parts}) |")
     verdicts = []
     for r in results:
         if "error" in r or r["ate_cm"] is None:
@@ -129,7 +179,10 @@ def table(results: list[dict]) -> str:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--data", type=Path, default=DATA, help=f"ICL-NUIM office kt0 in TUM layout (default {DATA})")
+    p.add_argument("--data", default=str(DATA), help=f"ICL-NUIM office kt0 in TUM layout, or the comma-separated "
+                   f"parts made by --pack (default {DATA})")
+    p.add_argument("--pack", type=Path, metavar="DIR", help="only split --data into parts under DIR, then exit")
+    p.add_argument("--part-mb", type=float, default=40.0, help="--pack: MB per part (default 40)")
     p.add_argument("--frames", default="0:", help="A:B, frames to run (default all 300)")
     p.add_argument("--device", default="cuda", help="run.device for the runs (default cuda)")
     p.add_argument("--modes", default="lock-step,pipelined", help="comma-separated: lock-step, pipelined")
@@ -143,6 +196,10 @@ def main() -> int:
     if args.mode:
         print("RESULT " + json.dumps(run_mode(args)), flush=True)
         return 0
+    if args.pack:
+        pack(Path(args.data), args.pack, args.part_mb)
+        return 0
+    args.data = merged([Path(d) for d in args.data.split(",")])
     if not (args.data / "associations.txt").exists():
         print(f"gpu.py: no ICL-NUIM sequence at {args.data} (associations.txt missing): pass --data", file=sys.stderr)
         return 2
