@@ -107,3 +107,27 @@ class SLAM:
         slam.trajectory = TrackedTrajectory.from_state_dict(state["trajectory"])
         slam.frontend.start_lost(slam.map.keyframes)
         return slam
+
+
+def loaded_slam(path, cfg: Config, intrinsics: Intrinsics) -> "SLAM":
+    """A saved map to go on with (`run.mode` slam) or to localize against (localization: the trajectory starts
+    empty), for frames of `intrinsics`; it starts lost. The map's model settings must be the config's."""
+    from eslam_core.outputs.map_file import read_checkpoint  # (outputs/ builds on this module)
+
+    state = read_checkpoint(path, CHECKPOINT_VERSION)
+    check_loadable(state, cfg, intrinsics, path)
+    state["config"]["run"]["mode"] = cfg.run.mode
+    slam = SLAM.from_state_dict(state)
+    if cfg.run.mode == "localization":
+        slam.trajectory = TrackedTrajectory()
+    return slam
+
+
+def check_loadable(state: dict, cfg: Config, intrinsics: Intrinsics, path) -> None:
+    saved = config_from_dict(state["config"], str(path))
+    if saved.model != cfg.model:
+        raise ValueError(f"{path}: the map was made with other model settings (model section of its config) than "
+                         f"this configuration's; use the preset / config it was made with")
+    if Intrinsics(**state["intrinsics"]) != intrinsics:
+        raise ValueError(f"{path}: the map was made for camera {Intrinsics(**state['intrinsics'])}, these frames "
+                         f"come from {intrinsics}; give the camera the map was made with")

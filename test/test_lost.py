@@ -99,3 +99,28 @@ def test_eslam_run_localize_leaves_the_saved_map_as_it_is(mapped, room_sequence,
     again = load_checkpoint(tmp_path / "loc" / "checkpoint.pt")
     assert all(torch.equal(a, b) for a, b in zip(again.map.field.state_dict().values(),
                                                  mapped.map.field.state_dict().values()))
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_saved_map_is_loaded_by_another_runtime_which_relocalizes(mapped, room_sequence, tmp_path, workers):
+    """A map saved by one runtime is loaded by another (the node's map_file), in localization mode: it starts
+    lost, finds the camera on frames of the same scene from elsewhere on the walk, and leaves the map as it was."""
+    from eslam_core.outputs.export import load_checkpoint, save_checkpoint
+    from eslam_core.runtime import make_runtime
+
+    saved = save_checkpoint(mapped, tmp_path / "map.pt")
+    cfg = load_config("fast", {**FAST, "run": {"mode": "localization"}})
+    updates = []
+    with make_runtime(cfg, room_sequence.intrinsics, workers=workers, checkpoint=str(saved)) as rt:
+        for i in range(14, 20):
+            rt.submit(room_sequence[i])
+        rt.close()
+        updates = rt.poll()
+        after = rt.save_checkpoint(tmp_path / "after.pt")
+    assert [u.index for u in updates] == list(range(14, 20))
+    assert updates[0].lost or updates[0].quality > 0  # starts lost: found by relocalization or the tracker
+    last = updates[-1]
+    assert not last.lost
+    assert np.linalg.norm(last.pose[:3, 3] - room_sequence[19].pose[:3, 3]) < 0.02
+    kept = load_checkpoint(after).map.field.state_dict()
+    assert all(torch.equal(kept[k], v) for k, v in mapped.map.field.state_dict().items())

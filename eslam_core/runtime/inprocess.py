@@ -26,7 +26,7 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
-from eslam_core.slam import SLAM
+from eslam_core.slam import SLAM, loaded_slam
 from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
 from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, \
@@ -43,8 +43,9 @@ class _StepInterrupted(Exception):
 
 class InProcessRuntime(SavingMixin):
     def __init__(self, cfg: Config, intrinsics: Intrinsics, policy: str = "offline", threads: Optional[int] = None,
-                 capacity: int = DEFAULT_CAPACITY):
+                 capacity: int = DEFAULT_CAPACITY, checkpoint: Optional[str] = None):
         self.cfg = cfg
+        self.checkpoint = checkpoint  # a saved map to start from (see loaded_slam); a reset starts an empty one
         self.intrinsics = intrinsics
         self.policy = check_policy(policy)
         self.threads = threads or cfg.run.threads or None
@@ -66,8 +67,11 @@ class InProcessRuntime(SavingMixin):
         self._new_map()
 
     def _new_map(self) -> None:
-        self.slam = SLAM(self.cfg, self.intrinsics)
-        self._mirror = TrackedTrajectory()  # what the caller reads while a step runs
+        self.slam = loaded_slam(self.checkpoint, self.cfg, self.intrinsics) if self.checkpoint else \
+            SLAM(self.cfg, self.intrinsics)
+        self.checkpoint = None
+        # what the caller reads while a step runs
+        self._mirror = TrackedTrajectory.from_state_dict(self.slam.trajectory.state_dict())
         self._memory = {"map_bytes": 0, "keyframe_bytes": 0, "keyframes_kept": 0}
         self._updates: list[PoseUpdate] = []
         self._tracking_rate, self._mapping_rate, self._latency = RateMeter(), RateMeter(), LatencyMeter()

@@ -49,7 +49,7 @@ import torch.multiprocessing as tmp
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
 from eslam_core.frames import prepare_frame, working_intrinsics
-from eslam_core.slam import SLAM
+from eslam_core.slam import SLAM, loaded_slam
 from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
 from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, \
@@ -116,7 +116,8 @@ def semaphore_names(*objects) -> list[str]:
 class MultiProcessRuntime(SavingMixin):
     def __init__(self, cfg: Config, intrinsics: Intrinsics, policy: str = "offline", threads: Optional[int] = None,
                  capacity: int = DEFAULT_CAPACITY, publish_every: int = 5, lend_threads: bool = True,
-                 keyframe_backlog: Optional[int] = None, catch_up_iterations: Optional[int] = None):
+                 keyframe_backlog: Optional[int] = None, catch_up_iterations: Optional[int] = None,
+                 checkpoint: Optional[str] = None):
         """threads: torch threads per worker; capacity: frames in the input ring; publish_every: optimiser
         iterations between mid-step map publications; lend_threads: an idle worker's threads go to the busy one;
         keyframe_backlog: keyframes that may wait for the mapper before the older ones are merged into the newest
@@ -139,6 +140,9 @@ class MultiProcessRuntime(SavingMixin):
         if catch_up_iterations is not None and catch_up_iterations < 1:
             raise RuntimeSetupError(f"catch_up_iterations must be >= 1 or None (never), got {catch_up_iterations}")
         self.catch_up_iterations = catch_up_iterations
+        self.checkpoint = checkpoint  # a saved map the first epoch starts from; checked here, loaded by the workers
+        self._loaded_trajectory = loaded_slam(checkpoint, cfg, intrinsics).trajectory.state_dict() if checkpoint \
+            else None
         self._hung: set = set()
         self.work_intr = working_intrinsics(intrinsics, cfg.camera)
         self._started = self._closed = False
@@ -156,7 +160,8 @@ class MultiProcessRuntime(SavingMixin):
 
     def _reset_parent_state(self, epoch: int) -> None:
         self._epoch = epoch
-        self._mirror = TrackedTrajectory()
+        self._mirror = TrackedTrajectory.from_state_dict(self._loaded_trajectory) if epoch == 0 and \
+            self._loaded_trajectory else TrackedTrajectory()
         self._last_quality = (1.0, False)
         self._updates: list[PoseUpdate] = []
         self._tracking_rate = RateMeter()
@@ -184,7 +189,7 @@ class MultiProcessRuntime(SavingMixin):
         setup = WorkerSetup(self.cfg, self.intrinsics, self.policy, self.threads, os.getpid(),
                             logging.getLogger("eslam").getEffectiveLevel(), self.publish_every,
                             os.environ.get("ESLAM_FAULT", ""), self.lend_threads, self.keyframe_backlog,
-                            self.catch_up_iterations)
+                            self.catch_up_iterations, self.checkpoint)
         self._errors, self._processes, error_ends = {}, {}, {}
         for name, main in (("tracker", tracker_main), ("mapper", mapper_main)):
             self._errors[name], error_ends[name] = ctx.Pipe(duplex=False)
@@ -448,7 +453,9 @@ class MultiProcessRuntime(SavingMixin):
         self._check_running()
         with self._lock:
             self._pump()
-            trajectory, keyframes, epoch = self._mirror.state_dict(), self._mirror.keyframes, self._epoch
+            # (in localization every frame anchors the trajectory, and no keyframe goes to the mapper)
+            keyframes = self._mirror.keyframes if self.cfg.run.mode == "slam" else 0
+            trajectory, epoch = self._mirror.state_dict(), self._epoch
             request_id = next(self._request_ids)
         self._queues["commands"].put(SnapshotRequest(request_id, epoch, keyframes))
         if not self._wait(lambda: request_id in self._snapshots, SNAPSHOT_TIMEOUT_S, "a snapshot of the map"):

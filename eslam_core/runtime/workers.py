@@ -64,7 +64,7 @@ from eslam_core.mapping.scene_map import SceneMap, initial_extent, surface_point
 from eslam_core.native import load_kernel
 from eslam_core.representation.field import SceneField
 from eslam_core.runtime.api import peak_rss_mb
-from eslam_core.slam import new_keyframe
+from eslam_core.slam import loaded_slam, new_keyframe
 from eslam_core.tracking.frontend import TrackingFrontEnd
 from eslam_core.trajectory import FrameRecord, TrackedTrajectory
 from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap
@@ -190,6 +190,7 @@ class WorkerSetup:
     # (None: never; the step runs all of them), so that a mapper slower than the tracker stays within about one
     # keyframe of it and spends its time on the newest keyframes.
     catch_up_iterations: Optional[int] = None
+    checkpoint: Optional[str] = None  # a saved map the first epoch starts from (see slam.loaded_slam)
 
 
 @dataclass
@@ -389,6 +390,13 @@ class TrackerWorker:
         self.replica = MapReplica(self.cfg, self.intr, self.dirs_cam)
         self.map: Optional[SharedMap] = None
         self.map_version = -1
+        if self.epoch == 0 and self.setup.checkpoint:  # the mapper publishes the loaded map and attaches us to it
+            loaded = loaded_slam(self.setup.checkpoint, self.setup.cfg, self.setup.intrinsics)
+            self.replica.start(loaded.map.extent)
+            for kf in loaded.map.keyframes:
+                self.replica.add_keyframe(kf)
+            self.frontend = loaded.frontend
+            self.trajectory = loaded.trajectory
 
     def run(self) -> None:
         self.ch.to_parent.put(WorkerReady("tracker", os.getpid()))
@@ -474,10 +482,11 @@ class TrackerWorker:
             self._hand_over(new_keyframe(pf, torch.from_numpy(pose0).float(), 0), extent)
         else:
             tracked = self.frontend.track(pf, self.replica, self.trajectory)
-            keyframe = tracked.keyframe
+            # (as in the lock-step SLAM: localization refines nothing, each frame is its own anchor)
+            keyframe = tracked.keyframe or self.cfg.run.mode == "localization"
             record = self.trajectory.record(pf.index, pf.timestamp, tracked.pose.double().numpy(), tracked.loss,
                                             pf.gt_pose, keyframe, tracked.quality.value, tracked.lost)
-            if keyframe:
+            if tracked.keyframe:
                 self.frontend.remember(record.reference, pf, tracked.pose)
                 self._hand_over(new_keyframe(pf, tracked.pose, record.reference), None)
         done = time.monotonic()
@@ -535,6 +544,12 @@ class MapperWorker:
         self.mapping = False  # a step is in progress (counts as backlog: the keyframe is not mapped yet)
         self.tracker_done = False
         self.finished = False
+        if self.epoch == 0 and self.setup.checkpoint:
+            self.scene = loaded_slam(self.setup.checkpoint, self.setup.cfg, self.setup.intrinsics).map
+            self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
+            self.steps_in_epoch = 1
+            self._publish()
+            self.ch.to_tracker.put(MapAttach(self.epoch, self.map.buffers, self.map.generation, self.scene.extent))
 
     def run(self) -> None:
         self.ch.to_parent.put(WorkerReady("mapper", os.getpid()))
@@ -703,7 +718,7 @@ class MapperWorker:
     def _snapshot(self, req: SnapshotRequest) -> Optional[bytes]:
         """The scene map (field, keyframes, window sampler): what a `SLAM` checkpoint needs besides the
         trajectory, once it holds the `min_keyframes` the parent has seen."""
-        if req.epoch != self.epoch or req.min_keyframes == 0:
+        if req.epoch != self.epoch or (req.min_keyframes == 0 and self.scene is None):
             return None
         while self._keyframe_count() < req.min_keyframes:  # keyframes still in flight from the tracker
             if self.ch.control.exiting or self.ch.control.epoch != self.epoch:
@@ -722,9 +737,9 @@ class MapperWorker:
             if msg.number >= state["keyframes_made"]:
                 state["keyframes"].append(dict(msg.keyframe().__dict__))
                 state["keyframes_made"] = msg.number + 1
-        # The parent's trajectory knows the first `min_keyframes`: a checkpoint holds those, not newer ones.
-        state["keyframes"] = [kf for kf in state["keyframes"] if kf["number"] < req.min_keyframes]
-        state["keyframes_made"] = min(state["keyframes_made"], req.min_keyframes)
+        if req.min_keyframes:  # the parent's trajectory knows the first ones: a checkpoint holds those, not newer
+            state["keyframes"] = [kf for kf in state["keyframes"] if kf["number"] < req.min_keyframes]
+            state["keyframes_made"] = min(state["keyframes_made"], req.min_keyframes)
         buf = io.BytesIO()
         torch.save(state, buf)
         return buf.getvalue()
