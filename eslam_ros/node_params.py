@@ -100,6 +100,9 @@ class NodeSettings:
     time_jump_reset: float = _param(1.0, "time_jump_reset", "a stamp this many seconds older than the last one "
                                                             "starts a new stream and resets the map (a bag "
                                                             "looped); 0 = never reset, skip such frames")
+    map_file: str = _param("", "map_file", "a checkpoint.pt (saved by ~/save_checkpoint or eslam run) the map starts "
+                                           "from, at start and on ~/load_map; the camera starts lost and is "
+                                           "relocalized; with eslam.run.mode localization the map is not changed")
     save_on_shutdown: bool = _param(True, "save_on_shutdown", "save trajectory, mesh and checkpoint to output_dir "
                                                               "on Ctrl-C / SIGTERM")
     start_queue_bytes: int = _param(512 * 2**20, "start_queue_bytes", "offline policy: bytes of frames kept while "

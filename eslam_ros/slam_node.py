@@ -490,6 +490,7 @@ class SlamNode(Node):
         # it starts wait in `_held` (offline: all of them, up to start_queue_bytes; live: the newest 30).
         self.runtime = None
         self._starter: Optional[threading.Thread] = None
+        self._load_map = bool(self.settings.map_file)  # the next runtime starts from map_file
         self._held: StartQueue[AcceptedFrame] = StartQueue(s.policy, s.start_queue_bytes)
         self.failed: Optional[str] = None  # set when the runtime crashed: the node then stops with an error
         self.active = False
@@ -541,7 +542,8 @@ class SlamNode(Node):
         self._configured_entities: list = [self.create_timer(s.status_period, gate(self._publish_status),
                                                              callback_group=self._io)]
         for name, handler in (("~/save_mesh", self._srv_save_mesh), ("~/save_trajectory", self._srv_save_trajectory),
-                              ("~/save_checkpoint", self._srv_save_checkpoint), ("~/reset", self._srv_reset)):
+                              ("~/save_checkpoint", self._srv_save_checkpoint), ("~/reset", self._srv_reset),
+                              ("~/load_map", self._srv_load_map)):
             self._configured_entities.append(
                 self.create_service(Trigger, name, gate(handler, when_closed=_refused), callback_group=self._slow))
         self._active_entities: list = []
@@ -730,8 +732,10 @@ class SlamNode(Node):
         """Runs on the starter thread; the pipeline has fixed the intrinsics to these."""
         s = self.settings
         self.get_logger().info(f"starting the SLAM runtime ({s.workers} worker(s), {s.policy}) for {intrinsics}")
+        checkpoint = s.map_file if self._load_map else None
+        self._load_map = False
         try:
-            runtime = make_runtime(self.config, intrinsics, workers=s.workers, policy=s.policy)
+            runtime = make_runtime(self.config, intrinsics, workers=s.workers, policy=s.policy, checkpoint=checkpoint)
             runtime.start()
         except (RuntimeCrashed, ValueError) as error:
             self._fail(f"the SLAM runtime did not start: {error}")
@@ -988,6 +992,34 @@ class SlamNode(Node):
             return response
         self._reset_runtime()
         response.success, response.message = True, "map and trajectory cleared; the next frame starts a new map"
+        return response
+
+    def _srv_load_map(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Drop the current map and continue in the one of `map_file` (from the next frame, relocalized)."""
+        from eslam_core.outputs.map_file import CheckpointError, read_checkpoint
+        from eslam_core.slam import CHECKPOINT_VERSION
+
+        if not self.settings.map_file:
+            response.success, response.message = False, "no map_file parameter set: set it to a checkpoint.pt first"
+            return response
+        try:
+            read_checkpoint(Path(self.settings.map_file), CHECKPOINT_VERSION)  # refuse a bad file, keep the map
+        except CheckpointError as error:
+            response.success, response.message = False, str(error)
+            return response
+        with self._lock:
+            old, self.runtime = self.runtime, None
+            if self._starter is not None:
+                self._starter.join()
+                old, self.runtime = old or self.runtime, None
+            self._starter, self._load_map = None, True
+            self._submitted.clear()
+            self._frame_odometry.clear()
+            self._previous_pose = None
+            self.mesh.reset()
+        if old is not None:
+            old.close(drain=False)
+        response.success, response.message = True, f"{self.settings.map_file}: the next frame starts in this map"
         return response
 
     def _save(self, response: Trigger.Response, name: str, save: Any) -> Trigger.Response:
