@@ -41,6 +41,8 @@ from eslam_core.trajectory import TrackedTrajectory
 
 log = logging.getLogger("eslam")
 
+MAX_EXTRAPOLATION = 4.0  # frame gaps the constant-velocity prediction extrapolates over
+
 
 class MapView(Protocol):
     field: Optional[SceneField]
@@ -141,9 +143,10 @@ class TrackingFrontEnd:
             if self.cfg.tracking.mode == "external":
                 return self.map_from_odom @ pf.odom_pose, gap
             return prev @ np.linalg.inv(self.last_odom) @ pf.odom_pose, gap
-        if len(self.good) < 2 or not self.cfg.tracking.constant_velocity or self.lost:
+        # After a long pause (over MAX_EXTRAPOLATION frame gaps) the velocity says nothing: predict no motion.
+        if len(self.good) < 2 or not self.cfg.tracking.constant_velocity or self.lost or gap > MAX_EXTRAPOLATION:
             return prev, gap
-        return constant_velocity(trajectory.pose(self.good[-2]), prev, min(gap, 4.0)), gap
+        return constant_velocity(trajectory.pose(self.good[-2]), prev, gap), gap
 
     def track(self, pf: PreparedFrame, view: MapView, trajectory: TrackedTrajectory) -> TrackedPose:
         predicted, gap = self.predict(pf, trajectory)
