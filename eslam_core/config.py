@@ -243,6 +243,8 @@ class RunConfig:
 class QualityConfig:
     """When a tracked frame counts as lost (tracking/quality.py)."""
 
+    enabled: bool = True  # off: no frame ever counts as lost (the quality is still computed and reported)
+
     depth_low: float = 0.05  # fraction of pixels with depth where the depth score is 0 ...
     depth_high: float = 0.25  # ... and where it reaches 1
     inliers_low: float = 0.2  # inlier fraction where the inlier score is 0 ...

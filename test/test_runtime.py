@@ -39,8 +39,9 @@ ROOT = Path(__file__).resolve().parent.parent
 FAST = {"mapping": {"first_iterations": 30, "iterations": 5, "rays": 2000},
         "tracking": {"iterations": 5, "rays": 1000}}
 N_FRAMES = 9  # keyframes 0, 4, 8
-CLI_FAST = ["--set", "mapping.first_iterations=5", "--set", "mapping.iterations=3", "--set", "tracking.iterations=3",
-            "--set", "mapping.every=2", "--no-mesh", "-q"]
+# (a map this rough is rightly lost from frame 1: quality.enabled=false keeps these runs making keyframes)
+CLI_FAST = ["--set", "quality.enabled=false", "--set", "mapping.first_iterations=5", "--set", "mapping.iterations=3",
+            "--set", "tracking.iterations=3", "--set", "mapping.every=2", "--no-mesh", "-q"]
 
 
 def fast_cfg(**sections):

@@ -181,7 +181,7 @@ class TrackingFrontEnd:
                  relocalized_from: Optional[int], pf: Optional[PreparedFrame] = None) -> TrackedPose:
         """The tracking state after this frame, and whether it is a keyframe."""
         was_lost = self.lost
-        self.lost = is_lost(was_lost, quality, self.cfg.quality)
+        self.lost = is_lost(was_lost, quality, self.cfg.quality) and self.cfg.quality.enabled
         if self.lost and not was_lost:
             log.warning("frame %d: tracking lost (%s); its pose is not used, relocalizing against the keyframes",
                         pf.index if pf else position, quality.reason)
