@@ -112,15 +112,29 @@ class SLAM:
 def loaded_slam(path, cfg: Config, intrinsics: Intrinsics) -> "SLAM":
     """A saved map to go on with (`run.mode` slam) or to localize against (localization: the trajectory starts
     empty), for frames of `intrinsics`; it starts lost. The map's model settings must be the config's."""
-    from eslam_core.outputs.map_file import read_checkpoint  # (outputs/ builds on this module)
-
-    state = read_checkpoint(path, CHECKPOINT_VERSION)
-    check_loadable(state, cfg, intrinsics, path)
+    state = _read_loadable(path, cfg, intrinsics)
     state["config"]["run"]["mode"] = cfg.run.mode
     slam = SLAM.from_state_dict(state)
     if cfg.run.mode == "localization":
         slam.trajectory = TrackedTrajectory()
     return slam
+
+
+def loaded_trajectory(path, cfg: Config, intrinsics: Intrinsics) -> TrackedTrajectory:
+    """The trajectory `loaded_slam` starts with, without building the map (the pipelined runtime's parent needs
+    only this; its workers load the map)."""
+    state = _read_loadable(path, cfg, intrinsics)
+    if cfg.run.mode == "localization":
+        return TrackedTrajectory()
+    return TrackedTrajectory.from_state_dict(state["trajectory"])
+
+
+def _read_loadable(path, cfg: Config, intrinsics: Intrinsics) -> dict:
+    from eslam_core.outputs.map_file import read_checkpoint  # (outputs/ builds on this module)
+
+    state = read_checkpoint(path, CHECKPOINT_VERSION)
+    check_loadable(state, cfg, intrinsics, path)
+    return state
 
 
 def check_loadable(state: dict, cfg: Config, intrinsics: Intrinsics, path) -> None:

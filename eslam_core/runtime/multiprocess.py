@@ -49,7 +49,7 @@ import torch.multiprocessing as tmp
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
 from eslam_core.frames import prepare_frame, working_intrinsics
-from eslam_core.slam import SLAM, loaded_slam
+from eslam_core.slam import SLAM, loaded_trajectory
 from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
 from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, \
@@ -141,7 +141,7 @@ class MultiProcessRuntime(SavingMixin):
             raise RuntimeSetupError(f"catch_up_iterations must be >= 1 or None (never), got {catch_up_iterations}")
         self.catch_up_iterations = catch_up_iterations
         self.checkpoint = checkpoint  # a saved map the first epoch starts from; checked here, loaded by the workers
-        self._loaded_trajectory = loaded_slam(checkpoint, cfg, intrinsics).trajectory.state_dict() if checkpoint \
+        self._loaded_trajectory = loaded_trajectory(checkpoint, cfg, intrinsics).state_dict() if checkpoint \
             else None
         self._hung: set = set()
         self.work_intr = working_intrinsics(intrinsics, cfg.camera)
