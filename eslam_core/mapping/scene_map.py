@@ -89,17 +89,20 @@ class SceneMap:
     def add_keyframe(self, kf: Keyframe) -> None:
         """Take a new keyframe: grow the map to its depth where allowed, mark what stays outside unusable."""
         points = surface_points(self.dirs_cam, kf, self.intr.width, stride=1, usable_only=False)
-        flat_ok = (kf.depth_image() > 0).reshape(-1)
+        with_depth = torch.nonzero((kf.depth_image() > 0).reshape(-1)).squeeze(1)  # the pixels of `points`
         if self.growable:
             self._grow_to(points, kf.frame_index)
         outside = outside_mask(points, self.extent)
         usable = kf.usable.reshape(-1).clone()
-        usable[torch.nonzero(flat_ok).squeeze(1)[outside]] = False
+        usable[with_depth[outside]] = False
         kf.usable = usable.reshape(kf.usable.shape)
         self._count_outside(int(outside.sum()), len(points), kf.frame_index)
         sample = points[~outside][torch.randint(int((~outside).sum()), (500,))] if (~outside).any() else None
         self.keyframes.append(kf, self.intr, sample)
-        self.observed.add_keyframe(surface_points(self.dirs_cam, kf, self.intr.width))
+        # Observed space takes every 2nd pixel along both axes (as surface_points' default), from the same points.
+        w = kf.usable.shape[1]
+        on_grid = (with_depth // w % 2 == 0) & (with_depth % w % 2 == 0) & usable[with_depth]
+        self.observed.add_keyframe(points[on_grid])
 
     def _grow_to(self, points: torch.Tensor, frame_index: int) -> None:
         sc = self.cfg.scene
