@@ -304,6 +304,10 @@ def play_bag(
                 publishers[c.topic] = node.create_publisher(message_class(c.msgtype), c.topic, profile)
         sensors = [publishers[c.topic] for c in connections if c.msgtype in (IMAGE_TYPE, INFO_TYPE)]
         found = _wait_for_subscribers(sensors, wait_for_subscribers)
+        # A node in REP 105 mode also takes the odometry; one that does not never subscribes, so its wait is short.
+        odometry = [publishers[c.topic] for c in connections if c.msgtype == ODOMETRY_TYPE]
+        if odometry and not _wait_for_subscribers(odometry, min(ODOMETRY_SUBSCRIBER_WAIT_S, wait_for_subscribers)):
+            log.info("no subscriber on %s: playing it anyway", ", ".join(p.topic_name for p in odometry))
         if not found:
             log.warning("no subscriber on %s after %.0f s: playing anyway",
                         ", ".join(p.topic_name for p in sensors if p.get_subscription_count() == 0),
@@ -335,6 +339,9 @@ def play_bag(
         node.destroy_node()
         if owns_rclpy:
             rclpy.try_shutdown()
+
+
+ODOMETRY_SUBSCRIBER_WAIT_S = 2.0
 
 
 def _wait_for_subscribers(publishers: Sequence[Any], timeout: float) -> bool:
@@ -569,7 +576,7 @@ def _accepted_frames(reader: Reader, rgb_c: Any, depth_c: Any, info_c: Any, pipe
         now = t / 1e9
         msg = _TYPESTORE.deserialize_cdr(raw, c.msgtype)
         if odom_c is not None and c.id == odom_c.id:
-            refused = robot.add_message(msg)
+            refused = robot.add_message(msg, now)
             if refused:
                 log.warning("%s", refused)
             yield from frames_of([], now)

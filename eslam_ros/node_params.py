@@ -123,8 +123,9 @@ class NodeSettings:
     pose_frame: str = _param("camera", "pose_frame", "whose pose ~/pose, ~/odom and ~/path give: camera (the image "
                                                      "frame_id) or base (base_frame)")
     odom_wait: float = _param(0.1, "odom.wait", "seconds of images (stamps) a frame waits for the odometry at its "
-                                                "stamp before it goes on without (counted in odom_missing); at the "
-                                                "end of a stream, this plus 1 s of wall time")
+                                                "stamp once the odometry stalled, before it goes on without (counted "
+                                                "in odom_missing); at the end of a stream, this plus 1 s of wall "
+                                                "time; while odometry flows, up to 1 s of images")
     odom_max_gap: float = _param(0.5, "odom.max_gap", "seconds between two odometry samples beyond which a frame "
                                                       "between them gets no odometry (counted in odom_gaps)")
     odom_max_speed: float = _param(5.0, "odom.max_speed", "m/s; odometry moving faster between two frames is a jump "

@@ -5,10 +5,12 @@ eslam_ros.tf_chain.TfOdometry); both answer `lookup(stamp)` with an `OdomLookup`
 each is reported instead of hidden:
 
 - *wait*: the image is newer than the newest odometry (odometry usually arrives a few ms after the image). The
-  frame waits in `OdometryWait` until a frame `wait_s` seconds newer has arrived (or, at the end of a stream,
-  `wait_s` + WALL_GRACE_S seconds of wall time passed), then goes on without odometry ("missing"). Stream time, not
-  wall time: a node busy with its own work (a loaded CPU, the offline policy's back-pressure) has not yet read the
-  odometry waiting in its queue, and must not give up on it.
+  frame waits in `OdometryWait`. While the odometry is flowing (a newer sample came within WALL_GRACE_S seconds)
+  it waits for it, up to MAX_LAG_S seconds of newer images: a node busy with its own work (a loaded CPU, the
+  offline policy's back-pressure, an executor that happens to take several images before the odometry queued
+  beside them) has not yet read the odometry waiting in its queue, and must not give up on it. Once the odometry
+  has stalled, the frame waits until a frame `wait_s` seconds newer has arrived (or, at the end of a stream,
+  `wait_s` + WALL_GRACE_S seconds of wall time passed), then goes on without odometry ("missing").
 - *gap*: the odometry samples around the image stamp are more than `max_gap` seconds apart; an interpolation over
   such a hole is a guess, so the frame gets no odometry.
 - *jump*: between two frames the odometry moved faster than `max_speed` / `max_angular_speed` (a reset of the
@@ -109,23 +111,29 @@ class OdometryBuffer:
 
 
 Item = TypeVar("Item")
-# Wall-clock seconds beyond `wait_s` after which a frame stops waiting even if no newer frame came (end of stream).
+# Wall-clock seconds beyond `wait_s` after which a frame stops waiting even if no newer frame came (end of stream);
+# also how recent the last odometry sample must be for the odometry to count as flowing.
 WALL_GRACE_S = 1.0
+# Seconds of newer images after which a frame stops waiting even for a flowing odometry: no robot's odometry is this
+# late, and the frames waiting meanwhile are held in memory.
+MAX_LAG_S = 1.0
 
 
 class OdometryWait(Generic[Item]):
     """Frames waiting for the odometry at their stamp, released in arrival order.
 
-    `push` a frame with its stamp, then `release(now)` returns (frame, lookup) for every frame at the head of the
-    queue whose odometry is known, or whose wait ran out: a frame `wait_s` seconds newer is queued behind it, or
-    `wait_s + WALL_GRACE_S` seconds passed (then MISSING, with the reason). Order is kept: a frame never overtakes
-    an older one.
+    `push` a frame with its stamp, tell `odometry_arrived(now)` whenever an odometry sample came, then
+    `release(now)` returns (frame, lookup) for every frame at the head of the queue whose odometry is known, or
+    whose wait ran out (then MISSING, with the reason): MAX_LAG_S seconds of newer images are queued behind it, or
+    the odometry stalled (no sample for WALL_GRACE_S seconds) and a frame `wait_s` seconds newer is queued or
+    `wait_s + WALL_GRACE_S` seconds passed. Order is kept: a frame never overtakes an older one.
     """
 
     def __init__(self, lookup: Callable[[float], OdomLookup], wait_s: float = 0.1) -> None:
         self.lookup = lookup
         self.wait_s = wait_s
         self._queue: deque[tuple[float, float, Item]] = deque()
+        self._last_arrival: Optional[float] = None
 
     def __len__(self) -> int:
         return len(self._queue)
@@ -133,20 +141,26 @@ class OdometryWait(Generic[Item]):
     def push(self, stamp: float, item: Item, now: float) -> None:
         self._queue.append((stamp, now, item))
 
+    def odometry_arrived(self, now: float) -> None:
+        self._last_arrival = now
+
     def release(self, now: float, flush: bool = False) -> list[tuple[Item, OdomLookup]]:
         """`flush`: the end of the stream, nothing more will come: release everything."""
         out = []
+        flowing = self._last_arrival is not None and now - self._last_arrival < WALL_GRACE_S
         while self._queue:
             stamp, since, item = self._queue[0]
             result = self.lookup(stamp)
             if result.status == OdomStatus.WAIT:
                 newest = self._queue[-1][0]
-                waited = newest - stamp >= self.wait_s - 1e-9  # stamps are floats: a nanosecond of slack
-                if not (flush or waited or now - since >= self.wait_s + WALL_GRACE_S):
+                ahead = newest - stamp + 1e-9  # stamps are floats: a nanosecond of slack
+                stalled = not flowing and (ahead >= self.wait_s or now - since >= self.wait_s + WALL_GRACE_S)
+                if not (flush or ahead >= MAX_LAG_S or stalled):
                     break
                 result = OdomLookup(OdomStatus.MISSING, message=(
                     f"no odometry for the image stamp {stamp:.3f} after waiting {now - since:.2f} s, "
-                    f"{newest - stamp:.2f} s of images ({result.message})"))
+                    f"{newest - stamp:.2f} s of images ({result.message}"
+                    f"{'; the odometry is flowing but late' if flowing else ''})"))
             self._queue.popleft()
             out.append((item, result))
         return out

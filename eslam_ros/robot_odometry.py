@@ -13,6 +13,7 @@ with a message for the log.
 from __future__ import annotations
 
 import dataclasses
+import threading
 from dataclasses import dataclass
 from typing import Any, Generic, Optional, TypeVar
 
@@ -53,25 +54,31 @@ class RobotOdometry(Generic[Item]):
         self.continuity = ContinuousOdometry(s.odom_max_speed, s.odom_max_angular_speed)
         self._base_camera = pose_from_xyz_quaternion(s.base_to_camera) if s.base_to_camera else None
         self._tf_extrinsics: dict[str, np.ndarray] = {}
+        # The node takes odometry messages on their own callback group (a thread of their own): in one group with
+        # the images, rclpy's executor serves the subscription created last only when the others are idle.
+        self._lock = threading.Lock()
         self.counts = {"odom_messages": 0, "odom_rejected": 0, "odom_matched": 0, "odom_missing": 0,
                        "odom_gaps": 0, "odom_jumps": 0, "odom_frames_skipped": 0}
 
     # ------------------------------------------------------------------------------------------------ inputs
 
-    def add_message(self, msg: Any) -> Optional[str]:
-        """A nav_msgs/Odometry message; returns a warning when it is refused (frames other than the configured)."""
+    def add_message(self, msg: Any, now: float) -> Optional[str]:
+        """A nav_msgs/Odometry message that arrived at `now`; returns a warning when it is refused (frames other than the configured)."""
         s = self.settings
         if msg.header.frame_id != s.odom_frame or msg.child_frame_id != s.base_frame:
             self.counts["odom_rejected"] += 1
             return (f"odometry message ignored: it is {msg.header.frame_id!r} -> {msg.child_frame_id!r} but "
                     f"odom_frame -> base_frame are {s.odom_frame!r} -> {s.base_frame!r}; set those parameters to the "
                     f"odometry's frames")
-        self.counts["odom_messages"] += 1
-        self.buffer.add(stamp_to_sec(msg.header.stamp), msg_to_pose(msg.pose.pose))
+        with self._lock:
+            self.counts["odom_messages"] += 1
+            self.buffer.add(stamp_to_sec(msg.header.stamp), msg_to_pose(msg.pose.pose))
+            self.wait.odometry_arrived(now)
         return None
 
     def push(self, stamp: float, frame_id: str, item: Item, now: float) -> None:
-        self.wait.push(stamp, (frame_id, stamp, item), now)
+        with self._lock:
+            self.wait.push(stamp, (frame_id, stamp, item), now)
 
     def __len__(self) -> int:
         return len(self.wait)
@@ -91,7 +98,9 @@ class RobotOdometry(Generic[Item]):
     def release(self, now: float, flush: bool = False) -> list[tuple[Item, FrameOdometry]]:
         """The frames whose odometry is settled (known, or given up on), in arrival order."""
         out = []
-        for (frame_id, stamp, item), lookup in self.wait.release(now, flush):
+        with self._lock:
+            settled = self.wait.release(now, flush)
+        for (frame_id, stamp, item), lookup in settled:
             base_camera = self.base_camera(frame_id)
             if lookup.status != OdomStatus.MATCHED:
                 self.counts["odom_gaps" if lookup.status == OdomStatus.GAP else "odom_missing"] += 1

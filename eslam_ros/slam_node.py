@@ -47,7 +47,6 @@ from nav_msgs.msg import Odometry, Path as PathMsg
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks
-from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -514,6 +513,7 @@ class SlamNode(Node):
         # Inputs, poses, path and status on one thread (in order); slow work (mesh, services) on another.
         self._io = MutuallyExclusiveCallbackGroup()
         self._slow = MutuallyExclusiveCallbackGroup()
+        self._odometry_in = MutuallyExclusiveCallbackGroup()  # see RobotOdometry: not starved behind the images
         self.gate = CallbackGate(on_error=self._on_callback_error)
         gate = self.gate.wrap
         self.pose_pub = self.create_publisher(PoseStamped, "~/pose", output_qos())
@@ -575,7 +575,7 @@ class SlamNode(Node):
         if self.tf_setup.odometry == "topic":
             self._subscriptions_in.append(self.create_subscription(
                 Odometry, "odom", gate(self._on_odometry), input_qos(s.input_qos, max(s.input_queue_depth, 100)),
-                callback_group=self._io))
+                callback_group=self._odometry_in))
         timers = [self.create_timer(0.01, gate(self._publish_poses), callback_group=self._io),
                   self.create_timer(s.path_period, gate(self._publish_path), callback_group=self._io)]
         if self.odometry is not None:
@@ -671,10 +671,9 @@ class SlamNode(Node):
 
     def _on_odometry(self, msg: Odometry) -> None:
         self.inputs.arrived("odom")
-        refused = self.odometry.add_message(msg)
+        refused = self.odometry.add_message(msg, time.monotonic())
         if refused and self._throttle.allow("odom_rejected"):
             self.get_logger().warning(f"{refused} [odom_rejected: {self.odometry.counts['odom_rejected']} so far]")
-        self._release_odometry()
 
     def _accept(self, accepted: AcceptedFrame) -> None:
         """A frame from the pipeline: to the runtime, in REP 105 mode once its odometry is settled."""

@@ -21,7 +21,7 @@ from eslam_ros.bag import FORWARD_CAMERA, BagOdometry, run_bag, write_bag
 from eslam_ros.conversions import msg_to_pose, pose_to_msg, stamp_to_sec
 from eslam_ros.diagnostics import ERROR, OK, WARN, StatusInputs, status_level
 from eslam_ros.node_params import NodeParameterError, NodeSettings, node_parameter_defaults
-from eslam_ros.odometry import ContinuousOdometry, OdometryBuffer, OdometryWait, OdomStatus
+from eslam_ros.odometry import MAX_LAG_S, ContinuousOdometry, OdometryBuffer, OdometryWait, OdomStatus
 from eslam_ros.robot_odometry import FrameOdometry, RobotOdometry, frame_with_odometry
 from eslam_ros.start_queue import StartQueue
 from eslam_ros.tf_chain import base_in_map, camera_in_odom, map_to_odom, pose_from_xyz_quaternion, select_setup
@@ -135,6 +135,32 @@ def test_frames_wait_for_their_odometry_in_order_then_give_up():
     assert {result.status for _, result in released} == {OdomStatus.MISSING}
 
 
+def test_frames_wait_for_a_flowing_odometry_that_is_behind_up_to_the_maximum_lag():
+    """The executor took images ahead of the odometry queued beside them: while samples keep coming, the frames
+    wait past `wait_s` of newer images and are matched; a lag beyond MAX_LAG_S gives up even so."""
+    buffer = OdometryBuffer()
+    wait = OdometryWait(buffer.lookup, wait_s=0.1)
+    for k in range(4):
+        wait.push(k / 30, k, now=10.0)
+    buffer.add(0.0, np.eye(4))
+    wait.odometry_arrived(now=10.0)
+    assert [item for item, _ in wait.release(now=10.0)] == [0]  # frame 0 matched, frame 1 waits 0.067 s ...
+    wait.push(4 / 30, 4, now=10.1)
+    wait.push(5 / 30, 5, now=10.1)  # ... then 0.133 s of newer images: more than wait_s, but the odometry flows
+    assert wait.release(now=10.1) == []
+    for k in range(1, 6):
+        buffer.add(k / 30, _planar(0.01 * k, 0, 0))
+        wait.odometry_arrived(now=10.2)
+    released = wait.release(now=10.2)
+    assert [item for item, _ in released] == [1, 2, 3, 4, 5]
+    assert {result.status for _, result in released} == {OdomStatus.MATCHED}
+    wait.push(0.2, "behind", now=10.3)
+    wait.push(0.2 + MAX_LAG_S, "a lag beyond the maximum", now=10.3)
+    wait.odometry_arrived(now=10.3)
+    ((item, result),) = wait.release(now=10.3)
+    assert item == "behind" and result.status == OdomStatus.MISSING and "flowing but late" in result.message
+
+
 def test_a_jump_is_taken_out_of_what_slam_gets_and_map_to_odom_takes_it_up():
     continuity = ContinuousOdometry(max_speed=5.0, max_angular_speed=6.0)
     raw = [_planar(0.03 * k, 0.0, 0.0) for k in range(5)] + [_planar(0.03 * k + 2.0, 1.0, 0.5) for k in range(5, 10)]
@@ -167,8 +193,8 @@ def test_robot_odometry_gives_each_frame_the_camera_in_odom_and_counts_problems(
     settings = _settings()
     robot = RobotOdometry(settings, select_setup(settings, have_tf2_ros=False, have_tf2_msgs=False))
     for k in range(6):
-        assert robot.add_message(_odometry_msg(k * 0.1, _planar(0.1 * k, 0.0, 0.05 * k))) is None
-    refused = robot.add_message(_odometry_msg(0.6, np.eye(4), child="base_footprint"))
+        assert robot.add_message(_odometry_msg(k * 0.1, _planar(0.1 * k, 0.0, 0.05 * k)), now=0.0) is None
+    refused = robot.add_message(_odometry_msg(0.6, np.eye(4), child="base_footprint"), now=0.0)
     assert "base_footprint" in refused and robot.counts["odom_rejected"] == 1
     robot.push(0.25, "camera_color_optical_frame", "frame", now=0.0)
     ((item, odometry),) = robot.release(now=0.0)

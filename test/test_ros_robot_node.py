@@ -268,9 +268,6 @@ def _ros_env(domain: int) -> dict:
 N_E2E = 12
 
 
-@pytest.mark.xfail(strict=False, reason="regression found at the end of session 7, not yet understood: on a fresh "
-                   "clone the node matches odometry to only 3 of 12 frames ('no odometry for the image stamp after "
-                   "waiting'); it passes when PYTHONPATH points at the checkout. Issue 19 stays open until fixed")
 def test_rep105_bag_replay_closes_the_tf_chain_with_the_robots_odometry(room_sequence, tmp_path, ros):
     """slam_node (pip install: odometry topic, extrinsic parameter) fed by `eslam bag play --wait-ready` with a
     bag that has wheel odometry; poses given for the base. map -> odom composed with the odometry and the extrinsic
