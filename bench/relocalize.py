@@ -300,7 +300,7 @@ def run_slam_scenario(data: Path, config: str, sets: list[str], blank_every: int
                "map_ate_cm": round(100 * float(np.sqrt(np.mean([r["error_m"] ** 2 for r in mapped if "error_m" in r]))), 2),
                "keyframes": len(slam.map.keyframes)}
 
-    blank = set(range(half + blank_every - 1, len(ds), blank_every))
+    blank = set(range(half + blank_every - 1, len(ds) - 1, blank_every))  # a blank needs a frame after it
     rows = with_errors([stepped(slam, blanked(ds[i]) if i in blank else ds[i]) for i in range(half, len(ds))],
                        alignment)
     summary["blanked"] = blank_events(rows, blank)

@@ -48,7 +48,8 @@ def _camera_override(cfg) -> Optional[Intrinsics]:
 def open_configured_dataset(cfg, data: Path, frames: tuple, stride: int):
     from eslam_core.datasets import open_dataset
 
-    ds = open_dataset(data, cfg.dataset.kind, intrinsics=_camera_override(cfg), depth_scale=cfg.camera.depth_scale)
+    ds = open_dataset(data, cfg.dataset.kind, intrinsics=_camera_override(cfg), depth_scale=cfg.camera.depth_scale,
+                      register_colour=cfg.dataset.register_colour)
     return ds.subset(frames[0], frames[1], stride)
 
 

@@ -48,6 +48,8 @@ class CameraConfig:
 @dataclass
 class DatasetConfig:
     kind: str = "auto"  # auto | tum | icl | replica | scannet | 7scenes
+    # Resample colour that is not registered to depth (7-Scenes) onto the depth camera's pixels as it is read.
+    register_colour: bool = True
 
     def validate(self, check) -> None:
         kinds = ("auto", "tum", "icl", "replica", "scannet", "7scenes")

@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from eslam_core.camera import Intrinsics
+from eslam_core.camera import Intrinsics, register_colour
 from eslam_core.datasets import (
     DatasetError,
     ICLNUIMDataset,
@@ -23,7 +23,7 @@ from eslam_core.datasets import (
 )
 from eslam_core.datasets.tum import ICL_NUIM_INTRINSICS, associate_timestamps, nearest_within
 from eslam_core.datasets.replica import REPLICA_INTRINSICS
-from eslam_core.datasets.sevenscenes import SEVEN_SCENES_INTRINSICS
+from eslam_core.datasets.sevenscenes import SEVEN_SCENES_COLOUR_INTRINSICS, SEVEN_SCENES_INTRINSICS
 
 W, H = 8, 6
 SMALL = Intrinsics(W, H, fx=7.0, fy=7.5, cx=3.5, cy=2.5)
@@ -461,6 +461,54 @@ def test_7scenes_jpeg_sequences_in_a_scene_folder_and_png_preferred(tmp_path):
         child.unlink()
     with pytest.raises(DatasetError, match=r"no RGB-D frames.*\.color\.png \(or \.color\.jpg\)"):
         open_dataset(scene / "seq-01", "7scenes")
+
+
+def _texture(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A smooth colour pattern on the plane z = const, as a function of its metric coordinates (x, y)."""
+    return np.stack([128 + 100 * np.sin(9 * x), 128 + 100 * np.cos(7 * y), 128 + 60 * np.sin(5 * (x + y))],
+                    -1).astype(np.uint8)
+
+
+def _plane_seen_by(intr: Intrinsics, z: float, centre: np.ndarray = np.zeros(3)) -> np.ndarray:
+    """The image of the textured plane z (world = depth camera frame) taken by a camera at `centre`, same axes."""
+    v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
+    depth = z - centre[2]
+    return _texture((u - intr.cx) / intr.fx * depth + centre[0], (v - intr.cy) / intr.fy * depth + centre[1])
+
+
+def test_colour_registration_resamples_the_colour_camera_onto_the_depth_pixels():
+    depth_camera = Intrinsics(64, 48, fx=58.5, fy=58.5, cx=32.0, cy=24.0)
+    colour_camera = Intrinsics(64, 48, fx=52.5, fy=52.5, cx=31.0, cy=24.5)
+    z, baseline = 1.5, np.array([-0.025, 0.0, 0.0])  # the colour camera 2.5 cm beside the depth camera
+    depth = np.full((48, 64), z, np.float32)
+    truth = _plane_seen_by(depth_camera, z).astype(int)
+    depth_to_colour = np.eye(4)
+    depth_to_colour[:3, 3] = -baseline
+    shot = _plane_seen_by(colour_camera, z, baseline)
+    registered = register_colour(shot, depth, depth_camera, colour_camera, depth_to_colour).astype(int)
+    inner = np.s_[4:-4, 4:-4]  # the colour camera's wider view covers these; the edges are extrapolated
+    assert np.abs(registered - truth)[inner].mean() < 3
+    assert np.abs(shot.astype(int) - truth)[inner].mean() > 10  # as shot, the pixels see other points
+    # Without depth a pixel is taken at infinity, where only the rotation counts: exact for cameras sharing a centre.
+    same_centre = register_colour(_plane_seen_by(colour_camera, z), np.zeros_like(depth), depth_camera, colour_camera)
+    assert np.abs(same_centre.astype(int) - truth)[inner].mean() < 3
+
+
+def test_7scenes_colour_is_registered_to_depth_as_read(tmp_path):
+    """Frames of the shipped size get their colour resampled from the 525-pixel colour camera onto the 585-pixel
+    depth camera; dataset.register_colour false keeps it as shipped."""
+    folder = tmp_path / "seq-01"
+    folder.mkdir()
+    z = 2.0
+    shot = _plane_seen_by(SEVEN_SCENES_COLOUR_INTRINSICS, z)
+    save_rgb(folder / "frame-000000.color.png", shot)
+    save_png16(folder / "frame-000000.depth.png", np.full((480, 640), int(z * 1000), np.uint16))
+    truth = _plane_seen_by(SEVEN_SCENES_INTRINSICS, z).astype(int)
+    registered = open_dataset(folder)[0].rgb.astype(int)
+    assert np.abs(registered - truth).mean() < 2
+    as_shipped = open_dataset(folder, register_colour=False)[0].rgb
+    np.testing.assert_array_equal(as_shipped, shot)
+    assert np.abs(as_shipped.astype(int) - truth).mean() > 20
 
 
 def test_scannet_zero_padded_png_export_keeps_its_poses(tmp_path):

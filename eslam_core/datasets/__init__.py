@@ -81,8 +81,10 @@ def open_dataset(
     *,
     intrinsics: Optional[Intrinsics] = None,
     depth_scale: Optional[float] = None,
+    register_colour: bool = True,
 ) -> RGBDDataset:
-    """Open an RGB-D sequence. `intrinsics` / `depth_scale` override what the reader finds in files or defaults."""
+    """Open an RGB-D sequence. `intrinsics` / `depth_scale` override what the reader finds in files or defaults;
+    `register_colour` False keeps a data set's unregistered colour as shipped (see RGBDDataset.colour_intrinsics)."""
     chosen = kind.strip().lower()
     if chosen == "auto":
         chosen = detect_kind(path)
@@ -91,4 +93,6 @@ def open_dataset(
         raise DatasetError(f"unknown data set kind {kind!r}; use 'auto' or one of {', '.join(DATASET_KINDS)}")
     if depth_scale is not None and not float(depth_scale) > 0:
         raise DatasetError(f"depth_scale must be a positive number of raw depth units per metre, got {depth_scale}")
-    return reader(path, intrinsics=intrinsics, depth_scale=depth_scale)
+    dataset = reader(path, intrinsics=intrinsics, depth_scale=depth_scale)
+    dataset.register_colour = register_colour
+    return dataset

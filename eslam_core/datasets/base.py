@@ -18,7 +18,7 @@ from typing import ClassVar, Optional
 import numpy as np
 from PIL import Image
 
-from eslam_core.camera import Frame, Intrinsics
+from eslam_core.camera import Frame, Intrinsics, register_colour
 from eslam_core.geometry import orthonormalize
 
 
@@ -50,6 +50,12 @@ class RGBDDataset(Sequence):
     name: str
     intrinsics: Intrinsics  # of the images as returned (colour and depth have the same size)
     depth_scale: float  # raw depth units per metre
+    # The colour camera's intrinsics where colour is not registered to depth (7-Scenes): the colour image is then
+    # resampled onto the depth camera's pixels as it is read (camera.register_colour), unless `register_colour`
+    # is False or the images are not of the size these intrinsics describe (resized copies: the reader cannot know
+    # the colour camera then). None: the data set's colour is registered already.
+    colour_intrinsics: ClassVar[Optional[Intrinsics]] = None
+    register_colour: bool = True
 
     def __init__(self) -> None:
         # The base class is abstract: only the format readers know how to find their frames.
@@ -94,6 +100,9 @@ class RGBDDataset(Sequence):
         rgb = self._read_rgb(record.rgb_path)
         depth = self._read_depth(record.depth_path)
         self._check_registered(rgb, depth, record)
+        colour = self.colour_intrinsics
+        if self.register_colour and colour is not None and rgb.shape[:2] == (colour.height, colour.width):
+            rgb = register_colour(rgb, depth, self.intrinsics, colour)
         pose = None if record.pose is None else record.pose.copy()
         return Frame(index=position, timestamp=record.timestamp, rgb=rgb, depth=depth, pose=pose)
 

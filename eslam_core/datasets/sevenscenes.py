@@ -5,10 +5,12 @@
     seq-01/frame-000000.pose.txt    4x4 camera-to-world (from KinectFusion)
     camera-intrinsics.txt           optional 3x3 depth camera matrix, in the sequence folder or its scene folder
 
-7-Scenes colour and depth come from the Kinect's two cameras and are NOT registered: a colour pixel and the depth
-pixel at the same coordinates see slightly different points (a few pixels apart, more at close range). This reader
-does not correct it (ESLAM does not either): geometry is right, colour is somewhat blurred onto it. Intrinsics are
-those of camera-intrinsics.txt when present, else the nominal ones the data set documents for depth. Frames are
+7-Scenes colour and depth come from the Kinect's two cameras and are NOT registered: the colour camera has a wider
+view (focal length about 525 pixels against the depth camera's 585, the values DSAC and later work use), so the
+same pixel coordinates see points up to ~30 pixels apart towards the image edges. The reader resamples the colour
+image onto the depth camera's pixels (`register_colour`, the baseline between the cameras ignored: it is not
+published); `dataset.register_colour: false` keeps the colour as shipped. Intrinsics are those of
+camera-intrinsics.txt when present, else the nominal ones the data set documents for depth. Frames are
 recorded at 30 Hz without timestamps, so a frame's timestamp is its number (the NNNNNN in its file names) / 30.
 KinectFusion's rotations are orthonormal only to about 1e-4; they are re-orthonormalised (`checked_pose`).
 """
@@ -37,6 +39,7 @@ from eslam_core.datasets.base import (
 )
 
 SEVEN_SCENES_INTRINSICS = Intrinsics(640, 480, fx=585.0, fy=585.0, cx=320.0, cy=240.0)
+SEVEN_SCENES_COLOUR_INTRINSICS = Intrinsics(640, 480, fx=525.0, fy=525.0, cx=320.0, cy=240.0)
 SEVEN_SCENES_DEPTH_SCALE = 1000.0
 SEVEN_SCENES_FRAME_RATE = 30.0
 SEVEN_SCENES_INVALID_DEPTH = 65535  # the original release's raw value for "no measurement" (copies also use 0)
@@ -91,6 +94,7 @@ class SevenScenesDataset(RGBDDataset):
     """
 
     kind = "7scenes"
+    colour_intrinsics = SEVEN_SCENES_COLOUR_INTRINSICS
 
     def __init__(self, path: Path | str, intrinsics: Optional[Intrinsics] = None,
                  depth_scale: Optional[float] = None) -> None:
