@@ -88,6 +88,21 @@ def test_lost_state_has_hysteresis():
     assert is_lost(False, tracking_quality(evidence(inliers=0.1)))
 
 
+def test_a_lost_camera_is_found_only_where_the_map_is():
+    """7-Scenes localization restart: the tracker settled where 95 % of the 25 % of points in observed space fit
+    (80 cm off). A tracked camera looking at that much new space is fine."""
+    guess = TrackingEvidence(0.94, 0.95, 0.25, 5.39, motion(0.001, 0.1), None, 1.0, lost_before=True)
+    q = tracking_quality(guess)
+    assert is_lost(True, q) and "25% of the depth points in mapped space" in q.reason  # stays lost
+    assert not tracking_quality(TrackingEvidence(0.94, 0.95, 0.25, 5.39, motion(0.001, 0.1), None, 1.0)).lost
+    found = tracking_quality(TrackingEvidence(0.94, 0.95, 0.8, 5.39, motion(0.001, 0.1), None, 1.0, lost_before=True))
+    assert found.value == 1.0 and not is_lost(True, found)
+    # Tracked from a guess (no relocalization match, no recent pose): however well it fits, not found.
+    guessed = tracking_quality(TrackingEvidence(0.94, 0.95, 0.8, 5.39, motion(0.001, 0.1), None, 1.0,
+                                                lost_before=True, anchored=False))
+    assert guessed.lost and "no keyframe matches" in guessed.reason
+
+
 def test_typical_loss_waits_for_enough_frames():
     assert typical_loss([0.4, 0.5]) is None
     assert typical_loss([0.4, 0.5, float("nan"), 0.45, 0.42, 0.9]) == pytest.approx(0.45)

@@ -12,6 +12,13 @@ A tracked frame gives four pieces of evidence, each turned into a score in [0, 1
 - motion: the correction the tracker applied to the constant-velocity prediction, against what a hand-held camera
   does in one frame gap. Tracking can recover a correct pose 10 cm from the prediction, so this only flags
   corrections well beyond that.
+- mapped (only while the camera is lost): the fraction of the depth points in observed space. The inlier score
+  counts only those, which is right for a tracked camera looking at new space, but a lost camera tracked from a
+  guess can settle where a quarter of its points fit some mapped surface and the rest lie in unmapped space.
+- start (only while lost): whether the tracker started from a pose worth refining: a relocalization match, the
+  odometry, or the last tracked pose a few frame gaps ago. From anything older (a loaded map's first frames, a
+  camera carried away) it settles on whatever surface is near, which on 7-Scenes was a pose 1-2 m off with
+  half its points fitting the map.
 The quality is the weakest score (one bad piece of evidence is enough to distrust a pose), and the reason names it.
 A frame is *lost* below `lost_below`; a lost camera counts as found again only at `found_above` (hysteresis, so
 that a marginal frame does not flip the state back and forth).
@@ -39,6 +46,8 @@ class TrackingEvidence:
     correction: np.ndarray  # (4, 4) inv(predicted pose) @ returned pose
     typical_loss: Optional[float] = None  # median loss of recent tracked frames; None = no residual score yet
     gap_ratio: float = 1.0  # the time since the previous frame in units of the usual frame gap (prediction's)
+    lost_before: bool = False  # the camera was lost at the previous frame: the pose must show it is in the map
+    anchored: bool = True  # while lost: the tracker started from a relocalization, the odometry or a recent pose
 
 
 @dataclass(frozen=True)
@@ -80,6 +89,12 @@ def tracking_quality(e: TrackingEvidence, cfg: Optional[QualityConfig] = None) -
         ratio = e.loss / e.typical_loss
         scores["residual"] = (1.0 - ramp(ratio, cfg.residual_high, cfg.residual_low),
                               f"loss {ratio:.1f}x the recent frames'")
+    if e.lost_before and not e.anchored:
+        scores["start"] = (0.0, "no keyframe matches the view and the last tracked pose is too old to start from")
+    if e.lost_before and math.isfinite(e.observed_fraction):
+        scores["mapped"] = (ramp(e.observed_fraction, cfg.found_observed_low, cfg.found_observed_high),
+                            f"{100 * e.observed_fraction:.0f}% of the depth points in mapped space at the tracked "
+                            f"pose: not found yet")
     name = min(scores, key=lambda k: scores[k][0])
     value, why = scores[name]
     lost = value < cfg.lost_below
