@@ -138,6 +138,8 @@ def test_health_of_a_finished_run(runs):
         assert h.input_queue_depth == 0 and h.keyframe_queue_depth == 0
         assert h.map_version >= 3 and h.latency_ms_mean > 0 and h.latency_ms_last > 0
         assert set(h.as_dict()) >= {"frames_received", "mapping_hz", "latency_ms_last", "map_version"}
+        # The synthetic room's depth is exact and its poses right to ~1 cm: keyframes agree to a few mm.
+        assert 0 <= h.consistency_mm < 15 and h.consistency_agree > 0.9, (h.consistency_mm, h.consistency_agree)
     h = runs[2]["health"]
     # Keeping the tracker's copy of the map current costs milliseconds, against seconds per mapping step.
     assert 0 < h.map_publish_ms < 500 and 0 < h.map_read_ms < 500

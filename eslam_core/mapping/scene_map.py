@@ -178,6 +178,15 @@ class SceneMap:
         self.observed.mapped(self.keyframes.made)
         return MappingStep(res.loss, refined)
 
+    def consistency(self):
+        """The depth consistency of the newest keyframe with older ones under the current poses (a
+        KeyframeConsistency, evaluation/consistency.py): needs no ground truth, so a robot can watch its own drift.
+        Reduced keyframes are left out (too coarse to warp)."""
+        from eslam_core.evaluation.consistency import keyframe_consistency
+
+        full = [kf for kf in self.keyframes if kf.stride == 1]
+        return keyframe_consistency(_DepthImages(full), [kf.pose for kf in full], self.intr)
+
     # --------------------------------------------------------------------------------------------- memory, state
     def memory(self) -> dict:
         """Bytes of the map and of the keyframe store (what grows with the explored area / with time)."""
@@ -209,3 +218,16 @@ class SceneMap:
             self.observed.mapped(len(self.keyframes))
         self.points_outside, self.points_seen = state["points_outside"], state["points_seen"]
         self.rng.bit_generator.state = state["rng"]
+
+
+class _DepthImages:
+    """The keyframes' depth images in metres, decoded when read (consistency reads a few of them)."""
+
+    def __init__(self, keyframes: list[Keyframe]) -> None:
+        self.keyframes = keyframes
+
+    def __len__(self) -> int:
+        return len(self.keyframes)
+
+    def __getitem__(self, i: int) -> torch.Tensor:
+        return self.keyframes[i].depth_image()

@@ -15,6 +15,7 @@ Input policies decide what happens when frames arrive faster than they can be tr
 from __future__ import annotations
 
 import inspect
+import math
 import resource
 import time
 from collections import deque
@@ -82,6 +83,10 @@ class Health:
     keyframe_bytes: int = 0
     keyframes_kept: int = 0
     peak_memory_mb: dict = field(default_factory=dict)
+    # Depth consistency of the newest keyframe with older ones under the current poses (needs no ground truth;
+    # evaluation/consistency.py): median |depth residual| in mm and the share within 3 cm; NaN before two keyframes.
+    consistency_mm: float = math.nan
+    consistency_agree: float = math.nan
 
     def as_dict(self) -> dict:
         return asdict(self)

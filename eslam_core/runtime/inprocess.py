@@ -17,7 +17,6 @@ import threading
 import time
 import traceback
 from collections import deque
-from pathlib import Path
 from typing import Optional
 
 import numpy as np
@@ -235,7 +234,10 @@ class InProcessRuntime(SavingMixin):
                         self._mirror.append(record, res.keyframe)
                         if res.keyframe:
                             memory = self.slam.map.memory()
+                            consistency = self.slam.map.consistency()
                             self._memory = {k: memory[k] for k in ("map_bytes", "keyframe_bytes", "keyframes_kept")}
+                            self._memory.update(consistency_mm=consistency.median_mm,
+                                                consistency_agree=consistency.agree_fraction)
                         self._mirror.refine(res.refined)
                         self._updates.append(PoseUpdate(res.index, frame.timestamp, res.pose, res.tracking_loss,
                                                         res.keyframe, done - arrival, res.quality, res.lost))

@@ -25,11 +25,11 @@ step instead, so it returns within about one optimiser iteration.
 """
 from __future__ import annotations
 
-import dataclasses
 import gc
 import io
 import itertools
 import logging
+import math
 import multiprocessing.connection
 import multiprocessing.synchronize
 import os
@@ -39,7 +39,6 @@ import threading
 import time
 import traceback
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
@@ -436,6 +435,8 @@ class MultiProcessRuntime(SavingMixin):
                 tracking_quality=self._last_quality[0], tracking_lost=self._last_quality[1],
                 map_bytes=int(b.get(Counter.MAP_BYTES)), keyframe_bytes=int(b.get(Counter.KEYFRAME_BYTES)),
                 keyframes_kept=int(b.get(Counter.KEYFRAMES_KEPT)),
+                consistency_mm=b.get(Counter.CONSISTENCY_MM) if b.get(Counter.CONSISTENCY_PAIRS) else math.nan,
+                consistency_agree=b.get(Counter.CONSISTENCY_AGREE) if b.get(Counter.CONSISTENCY_PAIRS) else math.nan,
                 peak_memory_mb={"parent": peak_rss_mb(), "tracker": b.get(Counter.TRACKER_PEAK_MB),
                                 "mapper": b.get(Counter.MAPPER_PEAK_MB)},
             )

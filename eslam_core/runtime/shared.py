@@ -293,6 +293,9 @@ class Counter(IntEnum):
     KEYFRAMES_KEPT = 22  # mapper: keyframes in the store
     TRACKER_DEVICE_PEAK_MB = 23  # tracker: peak GPU memory of its tensors (0 on the CPU)
     MAPPER_DEVICE_PEAK_MB = 24  # mapper: the same
+    CONSISTENCY_PAIRS = 25  # mapper: keyframe pairs of the newest consistency score (0: none yet)
+    CONSISTENCY_MM = 26  # mapper: SceneMap.consistency() median, mm
+    CONSISTENCY_AGREE = 27  # mapper: its share within 3 cm
 
 
 class HealthBoard:

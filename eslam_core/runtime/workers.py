@@ -656,6 +656,10 @@ class MapperWorker:
         board.set(Counter.MAP_BYTES, memory["map_bytes"])
         board.set(Counter.KEYFRAME_BYTES, memory["keyframe_bytes"])
         board.set(Counter.KEYFRAMES_KEPT, memory["keyframes_kept"])
+        consistency = self.scene.consistency()
+        board.set(Counter.CONSISTENCY_MM, consistency.median_mm)
+        board.set(Counter.CONSISTENCY_AGREE, consistency.agree_fraction)
+        board.set(Counter.CONSISTENCY_PAIRS, consistency.pairs)
         self.ch.to_parent.put(MappingReport(self.epoch, self.steps, version, loss, time.perf_counter() - start,
                                             time.monotonic(), refined))
 

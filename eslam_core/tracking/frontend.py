@@ -173,18 +173,19 @@ class TrackingFrontEnd:
         evidence = TrackingEvidence(result.depth_fraction, result.inlier_fraction, result.observed_fraction,
                                     result.loss, (torch.linalg.inv(init.double()) @ pose.double()).numpy(),
                                     typical_loss(self.recent_losses), 1.0 if found is not None else gap, self.lost,
-                                    found is not None or self._prior_holds(pf, gap))
+                                    found is not None or self._prior_holds(pf))
         quality = tracking_quality(evidence, self.cfg.quality)
         return self._decided(len(trajectory), pose, init, result.loss, quality,
                              None if found is None else found.keyframe_id, pf)
 
-    def _prior_holds(self, pf: PreparedFrame, gap: float) -> bool:
+    def _prior_holds(self, pf: PreparedFrame) -> bool:
         """Whether the prediction of a lost camera is worth refining without a relocalization match: without a
-        relocalizer it is all there is; with odometry it is the odometry's; else the last tracked pose, if it is
-        at most MAX_EXTRAPOLATION frame gaps old (a loaded map has none)."""
+        relocalizer it is all there is; with odometry it is the odometry's; else the last tracked pose, which a
+        loaded map does not have (where the map ended says nothing about where the camera is). A camera lost while
+        mapping, e.g. ahead of a map that has not grown yet, is found again from where it was last tracked."""
         if self.places is None or (pf.odom_pose is not None and self.last_odom is not None):
             return True
-        return bool(self.good) and gap <= MAX_EXTRAPOLATION
+        return bool(self.good)
 
     def _decided(self, position: int, pose: torch.Tensor, init: torch.Tensor, loss: float, quality: Quality,
                  relocalized_from: Optional[int], pf: Optional[PreparedFrame] = None) -> TrackedPose:

@@ -16,9 +16,8 @@ A tracked frame gives four pieces of evidence, each turned into a score in [0, 1
   counts only those, which is right for a tracked camera looking at new space, but a lost camera tracked from a
   guess can settle where a quarter of its points fit some mapped surface and the rest lie in unmapped space.
 - start (only while lost): whether the tracker started from a pose worth refining: a relocalization match, the
-  odometry, or the last tracked pose a few frame gaps ago. From anything older (a loaded map's first frames, a
-  camera carried away) it settles on whatever surface is near, which on 7-Scenes was a pose 1-2 m off with
-  half its points fitting the map.
+  odometry, or a pose tracked in this run. From where a loaded map ended it settles on whatever surface is near,
+  which on 7-Scenes was a pose 1-2 m off with half its points fitting the map.
 The quality is the weakest score (one bad piece of evidence is enough to distrust a pose), and the reason names it.
 A frame is *lost* below `lost_below`; a lost camera counts as found again only at `found_above` (hysteresis, so
 that a marginal frame does not flip the state back and forth).
@@ -90,7 +89,7 @@ def tracking_quality(e: TrackingEvidence, cfg: Optional[QualityConfig] = None) -
         scores["residual"] = (1.0 - ramp(ratio, cfg.residual_high, cfg.residual_low),
                               f"loss {ratio:.1f}x the recent frames'")
     if e.lost_before and not e.anchored:
-        scores["start"] = (0.0, "no keyframe matches the view and the last tracked pose is too old to start from")
+        scores["start"] = (0.0, "no keyframe matches the view, and no pose was tracked yet to start from")
     if e.lost_before and math.isfinite(e.observed_fraction):
         scores["mapped"] = (ramp(e.observed_fraction, cfg.found_observed_low, cfg.found_observed_high),
                             f"{100 * e.observed_fraction:.0f}% of the depth points in mapped space at the tracked "
