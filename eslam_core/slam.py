@@ -34,6 +34,7 @@ class StepResult:
     refined: dict  # keyframe number -> refined pose, from this step's mapping
     quality: float  # of the tracked pose (tracking/quality.py)
     lost: bool  # the camera is lost: the pose is a guess, the frame was not mapped
+    anchor: bool  # the frame's record anchors the trajectory: a keyframe, or (localization) every frame
 
 
 def new_keyframe(pf: PreparedFrame, pose: torch.Tensor, number: int) -> Keyframe:
@@ -62,7 +63,7 @@ class SLAM:
             self.frontend.remember(0, pf, pose0)
             self.map.add_keyframe(new_keyframe(pf, torch.from_numpy(pose0).float(), 0))
             step = self.map.warm_up()
-            return StepResult(pf.index, pose0, 0.0, True, step.loss, {}, 1.0, False)
+            return StepResult(pf.index, pose0, 0.0, True, step.loss, {}, 1.0, False, True)
         tracked = self.frontend.track(pf, self.map, self.trajectory)
         pose = tracked.pose.double().numpy()
         n = len(self.trajectory)
@@ -81,7 +82,7 @@ class SLAM:
             self.frontend.refine(step.refined)
             mapping_loss, refined = step.loss, step.refined
         return StepResult(pf.index, self.trajectory.pose(n), tracked.loss, tracked.keyframe, mapping_loss, refined,
-                          tracked.quality.value, tracked.lost)
+                          tracked.quality.value, tracked.lost, anchor)
 
     # ------------------------------------------------------------------------------------------------ checkpoint
     def state_dict(self) -> dict:

@@ -116,7 +116,9 @@ def test_a_saved_map_is_loaded_by_another_runtime_which_relocalizes(mapped, room
             rt.submit(room_sequence[i])
         rt.close()
         updates = rt.poll()
+        timestamps, poses = rt.trajectory()  # (in localization every frame anchors the trajectory's copy too)
         after = rt.save_checkpoint(tmp_path / "after.pt")
+    assert len(timestamps) == 6 and np.linalg.norm(poses[-1][:3, 3] - room_sequence[19].pose[:3, 3]) < 0.02
     assert [u.index for u in updates] == list(range(14, 20))
     assert updates[0].lost or updates[0].quality > 0  # starts lost: found by relocalization or the tracker
     last = updates[-1]

@@ -369,30 +369,38 @@ TOPICS = {"rgb/image": "/camera/color/image_raw", "depth/image": "/camera/depth/
           "rgb/camera_info": "/camera/color/camera_info"}
 
 
-@pytest.fixture
-def node_process(tmp_path, ros):
-    """slam_node as its own process (small, fast settings; every frame queued), killed at the end whatever
-    happens."""
-    out = tmp_path / "node_out"
-    params = {
-        "workers": 1, "policy": "offline", "input_qos": "reliable", "input_queue_depth": 100, "preset": "fast",
-        "output_dir": str(out), "mesh_period": 1.0, "mesh_resolution": 0.05, "path_period": 0.5,
-        "status_period": 0.25, "eslam.mapping.iterations": 4, "eslam.mapping.rays": 600,
-        "eslam.mapping.first_iterations": 60,
-    }
+NODE_PARAMS = {
+    "workers": 1, "policy": "offline", "input_qos": "reliable", "input_queue_depth": 100, "preset": "fast",
+    "mesh_period": 1.0, "mesh_resolution": 0.05, "path_period": 0.5, "status_period": 0.25,
+    "eslam.mapping.iterations": 4, "eslam.mapping.rays": 600, "eslam.mapping.first_iterations": 60,
+}
+
+
+def _start_node(out: Path, log_path: Path, **params) -> subprocess.Popen:
+    """slam_node as its own process (small, fast settings; every frame queued), writing to `out`."""
     command = [sys.executable, "-m", "eslam_ros.slam_node", "--ros-args"]
-    for name, value in params.items():
+    for name, value in {**NODE_PARAMS, "output_dir": str(out), **params}.items():
         command += ["-p", f"{name}:={value}"]
     for name, topic in TOPICS.items():
         command += ["-r", f"{name}:={topic}"]
-    log = open(tmp_path / "node.log", "w")
-    process = subprocess.Popen(command, env=_ros_env(_domain()), cwd=REPO, stdout=log, stderr=subprocess.STDOUT,
-                               start_new_session=True)
-    yield process, out, tmp_path / "node.log"
+    with open(log_path, "w") as log:
+        return subprocess.Popen(command, env=_ros_env(_domain()), cwd=REPO, stdout=log, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+
+
+def _kill(process: subprocess.Popen) -> None:
     if process.poll() is None:
         os.killpg(process.pid, signal.SIGKILL)  # the node and any worker process it started
         process.wait(10)
-    log.close()
+
+
+@pytest.fixture
+def node_process(tmp_path, ros):
+    """A node, killed at the end whatever happens."""
+    out = tmp_path / "node_out"
+    process = _start_node(out, tmp_path / "node.log")
+    yield process, out, tmp_path / "node.log"
+    _kill(process)
 
 
 class Listener:
@@ -539,3 +547,52 @@ def test_end_to_end_bag_replay_through_the_node(room_sequence, node_process, tmp
         assert len(rows) == N_FRAMES + 1
     finally:
         listener.node.destroy_node()
+
+
+def _play(bag: Path) -> None:
+    player = subprocess.run([sys.executable, "-m", "eslam_core", "bag", "play", str(bag), "--wait", "60",
+                             "--wait-ready", "/slam_node"], env=_ros_env(_domain()), cwd=REPO, capture_output=True,
+                            text=True, timeout=120)
+    assert player.returncode == 0, player.stderr
+
+
+def test_a_map_saved_by_one_node_is_reused_by_another_which_relocalizes(room_sequence, tmp_path, ros):
+    """Node A maps the first frames and saves its checkpoint on shutdown; node B starts with it as `map_file` in
+    localization mode, is fed frames from further along the walk (another starting pose), starts lost, finds the
+    camera against the keyframes and publishes its poses in A's map frame; the saved map is left as it was."""
+    first, later = room_sequence.subset(0, N_FRAMES), room_sequence.subset(N_FRAMES + 2, N_FRAMES + 8)
+    processes = []
+    listener = None
+    try:
+        a = _start_node(tmp_path / "a", tmp_path / "a.log")
+        processes.append(a)
+        _play(write_bag(first, tmp_path / "first.mcap").path)
+        listener = Listener()
+        assert listener.spin_until(lambda: listener.count("frames_tracked") == N_FRAMES, 150.0, a), \
+            (tmp_path / "a.log").read_text()[-3000:]
+        a.send_signal(signal.SIGINT)
+        assert a.wait(120) == 0, (tmp_path / "a.log").read_text()[-3000:]
+        saved = tmp_path / "a" / "checkpoint.pt"
+        before = saved.read_bytes()
+        listener.node.destroy_node()
+
+        b = _start_node(tmp_path / "b", tmp_path / "b.log", map_file=str(saved), **{"eslam.run.mode": "localization"})
+        processes.append(b)
+        listener = Listener()
+        assert listener.connect(b), (tmp_path / "b.log").read_text()[-3000:]
+        _play(write_bag(later, tmp_path / "later.mcap").path)
+        assert listener.spin_until(lambda: listener.count("frames_tracked") == len(later) and listener.poses, 150.0,
+                                   b), (listener.health(), (tmp_path / "b.log").read_text()[-3000:])
+        assert listener.spin_until(lambda: stamp_to_sec(listener.poses[-1].header.stamp) == pytest.approx(
+            later.timestamps()[-1]), 30.0, b)  # the last frame is found (lost frames publish no pose)
+        # A's map starts at its first camera, and is as right as A's tracking (the end-to-end test's bound, 5 cm).
+        truth = np.linalg.inv(first.gt_poses()[0]) @ later.gt_poses()[-1]
+        assert np.linalg.norm(msg_to_pose(listener.poses[-1].pose)[:3, 3] - truth[:3, 3]) < 0.05
+        b.send_signal(signal.SIGINT)
+        assert b.wait(120) == 0, (tmp_path / "b.log").read_text()[-3000:]
+        assert saved.read_bytes() == before
+    finally:
+        if listener is not None:
+            listener.node.destroy_node()
+        for process in processes:
+            _kill(process)

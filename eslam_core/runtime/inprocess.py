@@ -231,7 +231,7 @@ class InProcessRuntime(SavingMixin):
                 done = time.monotonic()
                 with self._lock:
                     if epoch == self._epoch:  # else a reset came in after the step: it belongs to the old map
-                        self._mirror.append(record, res.keyframe)
+                        self._mirror.append(record, res.anchor)
                         if res.keyframe:
                             memory = self.slam.map.memory()
                             consistency = self.slam.map.consistency()
