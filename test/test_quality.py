@@ -77,6 +77,10 @@ def test_quality_falls_steadily_with_the_inliers():
 def test_unmeasured_fractions_give_no_score():
     q = tracking_quality(evidence(depth=math.nan, inliers=math.nan, observed=math.nan))
     assert q.value == 1.0 and not q.lost
+    # The rendering tracker measures no observed space: its loss, rising as the camera turns to new space (ICL,
+    # paper settings: 6.6x the recent frames'), is no evidence of a jump.
+    assert not tracking_quality(evidence(inliers=0.9, observed=math.nan, loss=6.6, typical=1.0)).lost
+    assert tracking_quality(evidence(inliers=0.9, observed=0.42, loss=6.6, typical=1.0)).lost
 
 
 def test_lost_state_has_hysteresis():

@@ -83,8 +83,10 @@ def tracking_quality(e: TrackingEvidence, cfg: Optional[QualityConfig] = None) -
                              + _observed_note(e.observed_fraction))
     # A high loss alone is not enough: on ICL-NUIM replayed back and forth, well-tracked frames of well-mapped space
     # reached 9-15x the recent loss. It counts when the points also leave observed space (a jump: 42 % observed).
-    in_mapped_space = math.isfinite(e.observed_fraction) and e.observed_fraction >= cfg.residual_observed_below
-    if e.typical_loss is not None and e.typical_loss > 0 and not in_mapped_space:
+    # A tracker that does not measure observed space (the rendering tracker: NaN) gives no residual score: its loss
+    # covers rays into unmapped space too, and rose 3-7x on ICL frames turning towards new space (paper settings).
+    leaves_mapped_space = math.isfinite(e.observed_fraction) and e.observed_fraction < cfg.residual_observed_below
+    if e.typical_loss is not None and e.typical_loss > 0 and leaves_mapped_space:
         ratio = e.loss / e.typical_loss
         scores["residual"] = (1.0 - ramp(ratio, cfg.residual_high, cfg.residual_low),
                               f"loss {ratio:.1f}x the recent frames'")
