@@ -54,8 +54,7 @@ class RobotOdometry(Generic[Item]):
         self.continuity = ContinuousOdometry(s.odom_max_speed, s.odom_max_angular_speed)
         self._base_camera = pose_from_xyz_quaternion(s.base_to_camera) if s.base_to_camera else None
         self._tf_extrinsics: dict[str, np.ndarray] = {}
-        # The node takes odometry messages on their own callback group (a thread of their own): in one group with
-        # the images, rclpy's executor serves the subscription created last only when the others are idle.
+        # The node takes odometry messages on a callback group (a thread) of their own (see SlamNode.__init__).
         self._lock = threading.Lock()
         self.counts = {"odom_messages": 0, "odom_rejected": 0, "odom_matched": 0, "odom_missing": 0,
                        "odom_gaps": 0, "odom_jumps": 0, "odom_frames_skipped": 0}

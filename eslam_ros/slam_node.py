@@ -510,10 +510,14 @@ class SlamNode(Node):
         self._odometry_problems_at_last_status: dict[str, int] = {}
         self._poses_at_last_status = (0, time.monotonic())
 
-        # Inputs, poses, path and status on one thread (in order); slow work (mesh, services) on another.
+        # Inputs, poses and path in one group (in order); slow work (mesh, services), odometry and status in their own.
         self._io = MutuallyExclusiveCallbackGroup()
         self._slow = MutuallyExclusiveCallbackGroup()
-        self._odometry_in = MutuallyExclusiveCallbackGroup()  # see RobotOdometry: not starved behind the images
+        # rclpy's executor serves one exclusive group's ready entities timers first, then subscriptions, in creation
+        # order, and skips the rest while the group is busy: in the inputs' group, the odometry subscription and
+        # the status timer were served only when nothing else was ready, i.e. not at all under load.
+        self._odometry_in = MutuallyExclusiveCallbackGroup()
+        self._status = MutuallyExclusiveCallbackGroup()
         self.gate = CallbackGate(on_error=self._on_callback_error)
         gate = self.gate.wrap
         self.pose_pub = self.create_publisher(PoseStamped, "~/pose", output_qos())
@@ -540,7 +544,7 @@ class SlamNode(Node):
             s, self.tf_setup, tf_odometry) if self.tf_setup.rep105 else None
 
         self._configured_entities: list = [self.create_timer(s.status_period, gate(self._publish_status),
-                                                             callback_group=self._io)]
+                                                             callback_group=self._status)]
         for name, handler in (("~/save_mesh", self._srv_save_mesh), ("~/save_trajectory", self._srv_save_trajectory),
                               ("~/save_checkpoint", self._srv_save_checkpoint), ("~/reset", self._srv_reset),
                               ("~/load_map", self._srv_load_map)):
@@ -913,9 +917,11 @@ class SlamNode(Node):
             values.update(self.runtime.health().as_dict())
         values["frames_accepted"] = self.pipeline.frames_accepted
         values["pairs"] = self.pipeline.pairs
-        values.update(self.pipeline.unpaired)
-        values.update({f"skipped_{reason}": count for reason, count in self.pipeline.skipped.items()})
-        values["skipped_total"] = sum(self.pipeline.skipped.values())
+        # (copied at once: the inputs' thread may add a key meanwhile)
+        values.update(dict(self.pipeline.unpaired))
+        skipped = dict(self.pipeline.skipped)
+        values.update({f"skipped_{reason}": count for reason, count in skipped.items()})
+        values["skipped_total"] = sum(skipped.values())
         values["poses_published"] = self.outputs.poses
         values["poses_invalid"] = self.outputs.poses_invalid
         values["poses_lost"] = self.outputs.poses_lost
@@ -930,7 +936,7 @@ class SlamNode(Node):
         for name in self._watched_inputs():
             values[f"seconds_since_{name.replace('/', '_')}"] = self.inputs.silent_for(name)
         if self.odometry is not None:
-            values.update(self.odometry.counts)
+            values.update(dict(self.odometry.counts))
             values["frames_waiting_for_odometry"] = len(self.odometry)
         values["latency_ms_receive_to_pose_last"] = 1000 * self.outputs.latency.last
         values["latency_ms_receive_to_pose_mean"] = 1000 * self.outputs.latency.mean

@@ -161,6 +161,7 @@ def test_growth_in_the_pipelined_runtime(long_room, tmp_path):
     summary, s = _run(long_room, tmp_path, workers=2)
     assert s["runtime"]["workers_figures"]["map_bytes"] > 0
     assert s["points_outside_bound"] == 0 and summary.ate_rmse_cm < 3.0
+    assert s["map_growths"] >= 1  # counted by the mapper, carried into the final state with the map
     est = read_tum(tmp_path / "trajectory.txt")
     assert len(est.timestamps) == len(long_room) and np.isfinite(est.poses).all()
 

@@ -204,6 +204,7 @@ class SceneMap:
             "points_outside": self.points_outside,
             "points_seen": self.points_seen,
             "rng": self.rng.bit_generator.state,
+            "counts": {"map_growths": self.growths, "keyframes_dropped": self.keyframes.dropped},
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -218,6 +219,9 @@ class SceneMap:
             self.observed.mapped(len(self.keyframes))
         self.points_outside, self.points_seen = state["points_outside"], state["points_seen"]
         self.rng.bit_generator.state = state["rng"]
+        counts = state.get("counts", {})  # (checkpoints of version 3 written before the counts were kept)
+        self.growths = counts.get("map_growths", 0)
+        self.keyframes.dropped = counts.get("keyframes_dropped", 0)
 
 
 class _DepthImages:

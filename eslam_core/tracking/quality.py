@@ -1,6 +1,6 @@
 """Tracking quality: how much a tracked pose can be trusted, from what the tracker measured at that pose.
 
-A tracked frame gives four pieces of evidence, each turned into a score in [0, 1]:
+A tracked frame gives these pieces of evidence, each turned into a score in [0, 1]:
 - depth: the fraction of pixels (inside the border) with a depth measurement. A covered lens, a sensor facing the
   sky or pressed against a wall has almost none, and no tracker can place it.
 - inliers: the fraction of the scored depth points that land on the mapped surface at the returned pose, i.e.
@@ -17,7 +17,7 @@ A tracked frame gives four pieces of evidence, each turned into a score in [0, 1
   guess can settle where a quarter of its points fit some mapped surface and the rest lie in unmapped space.
 - start (only while lost): whether the tracker started from a pose worth refining: a relocalization match, the
   odometry, or a pose tracked in this run. From where a loaded map ended it settles on whatever surface is near,
-  which on 7-Scenes was a pose 1-2 m off with half its points fitting the map.
+  which on 7-Scenes restarts were poses 1-4 m off with a quarter to half of their points fitting the map.
 The quality is the weakest score (one bad piece of evidence is enough to distrust a pose), and the reason names it.
 A frame is *lost* below `lost_below`; a lost camera counts as found again only at `found_above` (hysteresis, so
 that a marginal frame does not flip the state back and forth).
@@ -46,7 +46,7 @@ class TrackingEvidence:
     typical_loss: Optional[float] = None  # median loss of recent tracked frames; None = no residual score yet
     gap_ratio: float = 1.0  # the time since the previous frame in units of the usual frame gap (prediction's)
     lost_before: bool = False  # the camera was lost at the previous frame: the pose must show it is in the map
-    anchored: bool = True  # while lost: the tracker started from a relocalization, the odometry or a recent pose
+    anchored: bool = True  # while lost: the tracker started from a relocalization, the odometry or a tracked pose
 
 
 @dataclass(frozen=True)
