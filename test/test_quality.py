@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from eslam_core.config import ConfigError
-from eslam_core.datasets.synthetic import axis_angle_to_rotation
+from eslam_core.geometry import rotvec_to_matrix
 from eslam_core.tracking.quality import QualityConfig, TrackingEvidence, is_lost, tracking_quality, typical_loss
 
 
 def motion(metres: float, degrees: float) -> np.ndarray:
     m = np.eye(4)
-    m[:3, :3] = axis_angle_to_rotation(np.radians(degrees) * np.array([0.0, 0.6, 0.8]))
+    m[:3, :3] = rotvec_to_matrix(np.radians(degrees) * np.array([0.0, 0.6, 0.8]))
     m[:3, 3] = [metres, 0.0, 0.0]
     return m
 

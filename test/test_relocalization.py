@@ -8,7 +8,6 @@ import torch
 
 from eslam_core.config import ConfigError
 from eslam_core.datasets.synthetic import (
-    axis_angle_to_rotation,
     build_room,
     default_intrinsics,
     frame_rng,
@@ -16,7 +15,7 @@ from eslam_core.datasets.synthetic import (
     look_at,
     render_frame,
 )
-from eslam_core.geometry import rotation_angle_deg
+from eslam_core.geometry import rotation_angle_deg, rotvec_to_matrix
 from eslam_core.tracking.relocalization import (
     KeyframeDatabase,
     RelocalizationConfig,
@@ -39,7 +38,7 @@ def moved(pose: np.ndarray, metres: float, degrees: float, rng: np.random.Genera
     out = pose.copy()
     t, axis = rng.normal(size=3), rng.normal(size=3)
     out[:3, 3] += metres * t / np.linalg.norm(t)
-    out[:3, :3] = axis_angle_to_rotation(np.radians(degrees) * axis / np.linalg.norm(axis)) @ pose[:3, :3]
+    out[:3, :3] = rotvec_to_matrix(np.radians(degrees) * axis / np.linalg.norm(axis)) @ pose[:3, :3]
     return out
 
 
@@ -114,7 +113,7 @@ def test_refined_keyframe_poses_move_the_answer_with_them(room):
     rgb, depth = render(scene, poses[75], 75)
     before = db.relocalize(rgb, depth, INTR)
     correction = np.eye(4)
-    correction[:3, :3] = axis_angle_to_rotation(np.radians([0.0, 0.0, 10.0]))
+    correction[:3, :3] = rotvec_to_matrix(np.radians([0.0, 0.0, 10.0]))
     correction[:3, 3] = [0.3, -0.2, 0.05]
     moved_db = KeyframeDatabase.from_state_dict(db.state_dict())
     for i in KEYFRAMES:

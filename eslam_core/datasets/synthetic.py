@@ -406,9 +406,6 @@ def _assemble(parts: dict[str, list[trimesh.Trimesh]], bound: np.ndarray, seed: 
 # ----------------------------------------------------------------------------------------------------------------
 
 
-axis_angle_to_rotation = rotvec_to_matrix  # (one Rodrigues: eslam_core.geometry)
-
-
 def look_at(eye, target, roll_rad: float = 0.0, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """Camera-to-world pose (OpenCV axes) at `eye` looking at `target`, image 'up' towards world `up`,
     then turned by `roll_rad` about the viewing axis."""
@@ -423,7 +420,7 @@ def look_at(eye, target, roll_rad: float = 0.0, up=(0.0, 0.0, 1.0)) -> np.ndarra
     right = right / np.linalg.norm(right)
     down = np.cross(forward, right)  # completes a right-handed (x right, y down, z forward) frame
     pose = np.eye(4)
-    pose[:3, :3] = np.stack([right, down, forward], axis=1) @ axis_angle_to_rotation([0.0, 0.0, roll_rad])
+    pose[:3, :3] = np.stack([right, down, forward], axis=1) @ rotvec_to_matrix([0.0, 0.0, roll_rad])
     pose[:3, 3] = eye
     return pose
 
@@ -498,7 +495,7 @@ def handheld_trajectory(n_frames: int, fps: float = 30.0, seed: int = 0, speed: 
     poses = np.empty((n_frames, 4, 4))
     for i in range(n_frames):
         pose = look_at(positions[i] + shake_translation[i], target[i], roll[i])
-        pose[:3, :3] = pose[:3, :3] @ axis_angle_to_rotation(shake_rotation[i])
+        pose[:3, :3] = pose[:3, :3] @ rotvec_to_matrix(shake_rotation[i])
         poses[i] = pose
     return poses
 

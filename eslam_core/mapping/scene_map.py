@@ -225,13 +225,17 @@ class SceneMap:
 
 
 class _DepthImages:
-    """The keyframes' depth images in metres, decoded when read (consistency reads a few of them)."""
+    """The keyframes' depth images in metres, each decoded once when first read (consistency reads the newest one
+    for every pair it tries, and a few of the others)."""
 
     def __init__(self, keyframes: list[Keyframe]) -> None:
         self.keyframes = keyframes
+        self._decoded: dict[int, torch.Tensor] = {}
 
     def __len__(self) -> int:
         return len(self.keyframes)
 
     def __getitem__(self, i: int) -> torch.Tensor:
-        return self.keyframes[i].depth_image()
+        if i not in self._decoded:
+            self._decoded[i] = self.keyframes[i].depth_image()
+        return self._decoded[i]

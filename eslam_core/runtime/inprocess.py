@@ -139,6 +139,18 @@ class InProcessRuntime(SavingMixin):
                           tracking_lost=last.lost if last else False, **self._memory,
                           peak_memory_mb={"process": peak_rss_mb()})
 
+    def _measure_map(self, epoch: int) -> None:
+        """The map's memory and keyframe consistency for the health (computed outside the caller's lock)."""
+        with self._slam_lock:
+            if epoch != self._epoch:
+                return
+            memory, consistency = self.slam.map.memory(), self.slam.map.consistency()
+        figures = {k: memory[k] for k in ("map_bytes", "keyframe_bytes", "keyframes_kept")}
+        figures.update(consistency_mm=consistency.median_mm, consistency_agree=consistency.agree_fraction)
+        with self._lock:
+            if epoch == self._epoch:
+                self._memory = figures
+
     def snapshot(self) -> SLAM:
         """A copy of the SLAM state between two steps (after close(), the final state itself)."""
         if self._closed or not self._started:
@@ -232,12 +244,6 @@ class InProcessRuntime(SavingMixin):
                 with self._lock:
                     if epoch == self._epoch:  # else a reset came in after the step: it belongs to the old map
                         self._mirror.append(record, res.anchor)
-                        if res.keyframe:
-                            memory = self.slam.map.memory()
-                            consistency = self.slam.map.consistency()
-                            self._memory = {k: memory[k] for k in ("map_bytes", "keyframe_bytes", "keyframes_kept")}
-                            self._memory.update(consistency_mm=consistency.median_mm,
-                                                consistency_agree=consistency.agree_fraction)
                         self._mirror.refine(res.refined)
                         self._updates.append(PoseUpdate(res.index, frame.timestamp, res.pose, res.tracking_loss,
                                                         res.keyframe, done - arrival, res.quality, res.lost))
@@ -245,6 +251,8 @@ class InProcessRuntime(SavingMixin):
                         self._latency.add(done - arrival)
                         if res.keyframe:
                             self._mapping_rate.tick(done)
+                if res.keyframe:  # after the pose is out: the consistency score takes tens of ms
+                    self._measure_map(epoch)
                 with self._cond:
                     self._counts["tracked"] += 1
                     self._counts["mapping_steps"] += int(res.keyframe)
