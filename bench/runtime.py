@@ -37,6 +37,7 @@ from eslam_core.cli import open_configured_dataset, parse_frames, parse_override
 from eslam_core.config import load_config  # noqa: E402
 from eslam_core.evaluation.trajectory import Trajectory, ate  # noqa: E402
 from eslam_core.runtime import make_runtime  # noqa: E402
+from eslam_core.runtime.shared import stage_profile  # noqa: E402
 
 MODES = {"lockstep": 1, "pipelined": 2}
 
@@ -103,6 +104,8 @@ def run_mode(mode: str, cfg, frames: list, intrinsics, threads: int, options: di
         "peak_memory_by_process_mb": {"parent": own, "tracker": figures.get("tracker_peak_mb"),
                                       "mapper": figures.get("mapper_peak_mb")} if workers == 2 else {"process": own},
         "health": health.as_dict(),
+        "stages": stage_profile(figures) if workers == 2 else [],
+        "wall_s_after_warm_up": done - warm,
     }
 
 
@@ -217,6 +220,11 @@ def main() -> int:
             print(f"{mode:<10} {r['steady_frames_per_s']:>9.3f} {r['steady_s_per_frame']:>8.2f} "
                   f"{r['warmup_s']:>9.1f} {r['total_s']:>8.1f} {ate_text:>7} {r['peak_memory_mb']:>8.0f} "
                   f"{r['torch_threads']:>7} {r['load_average_before'][0]:>8.2f}")
+    for r in results["runs"].get("pipelined", []):
+        print(f"\nper-stage profile of a pipelined run (ms per event; share of the wall time after the warm-up):")
+        for row in r["stages"]:
+            print(f"  {row['stage']:<50} {row['ms']:>8.1f} ms per {row['per']:<14} "
+                  f"{100 * row['total_s'] / r['wall_s_after_warm_up']:>5.1f} %")
     if {"lockstep", "pipelined"} <= set(results["runs"]):
         def median(mode: str, key: str) -> Optional[float]:
             values = [r[key] for r in results["runs"][mode] if r[key] is not None]

@@ -26,12 +26,16 @@ def working_intrinsics(intr: Intrinsics, cam: CameraConfig) -> Intrinsics:
     return intr if cam.image_scale == 1.0 else intr.scaled(cam.image_scale)
 
 
-def prepare_frame(frame: Frame, intr: Intrinsics, cam: CameraConfig) -> PreparedFrame:
-    """Check the frame against the camera, resize it to the working resolution and cut far depth."""
+def working_images(frame: Frame, intr: Intrinsics, cam: CameraConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Check the frame against the camera, resize it to the working resolution and cut far depth: colour (H, W, 3)
+    uint8 and depth (H, W) float32 metres, 0 = missing. (Numpy only: the runtime's parent process calls it per
+    frame, and torch's threads there would wait for cores the workers hold.)"""
     rgb, depth = frame.rgb, frame.depth
     if rgb.shape[:2] != depth.shape or rgb.shape[:2] != (intr.height, intr.width):
         raise ValueError(f"frame {frame.index}: image sizes rgb {rgb.shape[:2]} / depth {depth.shape} do not match "
                          f"the camera ({intr.height}, {intr.width}); check the camera section of the config")
+    if rgb.dtype != np.uint8:
+        raise ValueError(f"frame {frame.index}: rgb is {rgb.dtype}, expected uint8 (0-255) colour")
     work = working_intrinsics(intr, cam)
     if (work.width, work.height) != (intr.width, intr.height):
         rgb = np.asarray(Image.fromarray(rgb).resize((work.width, work.height), Image.BILINEAR))
@@ -41,6 +45,12 @@ def prepare_frame(frame: Frame, intr: Intrinsics, cam: CameraConfig) -> Prepared
     depth[depth < 0] = 0
     if cam.max_depth > 0:
         depth[depth > cam.max_depth] = 0
+    return rgb, depth
+
+
+def prepare_frame(frame: Frame, intr: Intrinsics, cam: CameraConfig) -> PreparedFrame:
+    """The frame at the working resolution (working_images) as the method's tensors."""
+    rgb, depth = working_images(frame, intr, cam)
     return PreparedFrame(frame.index, frame.timestamp, torch.from_numpy(rgb.astype(np.float32) / 255.0),
                          torch.from_numpy(depth), frame.pose, frame.odom_pose)
 

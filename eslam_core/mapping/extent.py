@@ -33,7 +33,7 @@ def estimate_bound(depth: np.ndarray, intr: Intrinsics, pose: np.ndarray, margin
 
 def outside_mask(points: torch.Tensor, bound: np.ndarray) -> torch.Tensor:
     """(N,) bool: the point lies outside the axis-aligned bound (2, 3)."""
-    lo, hi = (torch.as_tensor(b, dtype=points.dtype) for b in bound)
+    lo, hi = (torch.as_tensor(b, dtype=points.dtype, device=points.device) for b in bound)
     return ((points < lo) | (points > hi)).any(-1)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Callable, Optional
 
 import numpy as np
@@ -54,6 +55,17 @@ def surface_points(dirs_cam: torch.Tensor, kf: Keyframe, width: int, stride: int
     return depth_points_world(dirs_cam[kf.frame_pixels(flat, width)], d.reshape(-1)[flat], kf.pose)
 
 
+CONSISTENCY_EVERY = 4  # keyframes between two consistency scores of the runtimes' health
+
+
+@lru_cache(maxsize=4)
+def every_second_pixel(height: int, width: int) -> torch.Tensor:
+    """(H * W,) bool: the pixels on even rows and columns."""
+    take = torch.zeros(height, width, dtype=torch.bool)
+    take[::2, ::2] = True
+    return take.reshape(-1)
+
+
 class SceneMap:
     def __init__(self, cfg: Config, intr: Intrinsics, dirs_cam: torch.Tensor):
         self.cfg, self.intr, self.dirs_cam = cfg, intr, dirs_cam
@@ -69,6 +81,7 @@ class SceneMap:
         self.points_outside = 0  # keyframe depth points the map could not cover (outside the bound / max extent)
         self.points_seen = 0
         self._warned_outside = 0.0
+        self._consistency_scored_at = -CONSISTENCY_EVERY
 
     @property
     def started(self) -> bool:
@@ -88,11 +101,15 @@ class SceneMap:
     # ------------------------------------------------------------------------------------------------ keyframes
     def add_keyframe(self, kf: Keyframe) -> None:
         """Take a new keyframe: grow the map to its depth where allowed, mark what stays outside unusable."""
-        points = surface_points(self.dirs_cam, kf, self.intr.width, stride=1, usable_only=False)
-        with_depth = torch.nonzero((kf.depth_image() > 0).reshape(-1)).squeeze(1)  # the pixels of `points`
-        if self.growable:
-            self._grow_to(points, kf.frame_index)
+        depth = kf.depth_image().reshape(-1)
+        with_depth = torch.nonzero(depth > 0).squeeze(1)  # stored pixels with depth, the pixels of `points`
+        points = depth_points_world(self.dirs_cam[kf.frame_pixels(with_depth, self.intr.width)], depth[with_depth],
+                                    kf.pose)
         outside = outside_mask(points, self.extent)
+        if self.growable and outside.any():  # (only the points outside can make the map grow)
+            beyond = torch.nonzero(outside).squeeze(1)
+            self._grow_to(points[beyond], kf.frame_index)
+            outside[beyond] = outside_mask(points[beyond], self.extent)
         usable = kf.usable.reshape(-1).clone()
         usable[with_depth[outside]] = False
         kf.usable = usable.reshape(kf.usable.shape)
@@ -100,8 +117,7 @@ class SceneMap:
         sample = points[~outside][torch.randint(int((~outside).sum()), (500,))] if (~outside).any() else None
         self.keyframes.append(kf, self.intr, sample)
         # Observed space takes every 2nd pixel along both axes (as surface_points' default), from the same points.
-        w = kf.usable.shape[1]
-        on_grid = (with_depth // w % 2 == 0) & (with_depth % w % 2 == 0) & usable[with_depth]
+        on_grid = every_second_pixel(*kf.usable.shape)[with_depth] & usable[with_depth]
         self.observed.add_keyframe(points[on_grid])
 
     def _grow_to(self, points: torch.Tensor, frame_index: int) -> None:
@@ -178,12 +194,18 @@ class SceneMap:
         self.observed.mapped(self.keyframes.made)
         return MappingStep(res.loss, refined)
 
+    def consistency_due(self) -> bool:
+        """Whether the runtimes' health should score the consistency again: every CONSISTENCY_EVERY keyframes
+        (25-30 ms a score on one core, a whole keyframe's tracking; a health figure needs no more)."""
+        return self.keyframes.made >= 2 and self.keyframes.made - self._consistency_scored_at >= CONSISTENCY_EVERY
+
     def consistency(self):
         """The depth consistency of the newest keyframe with older ones under the current poses (a
         KeyframeConsistency, evaluation/consistency.py): needs no ground truth, so a robot can watch its own drift.
         Reduced keyframes are left out (too coarse to warp)."""
         from eslam_core.evaluation.consistency import keyframe_consistency
 
+        self._consistency_scored_at = self.keyframes.made
         full = [kf for kf in self.keyframes if kf.stride == 1]
         return keyframe_consistency(_DepthImages(full), [kf.pose for kf in full], self.intr)
 

@@ -144,12 +144,14 @@ class InProcessRuntime(SavingMixin):
         with self._slam_lock:
             if epoch != self._epoch:
                 return
-            memory, consistency = self.slam.map.memory(), self.slam.map.consistency()
+            memory = self.slam.map.memory()
+            consistency = self.slam.map.consistency() if self.slam.map.consistency_due() else None
         figures = {k: memory[k] for k in ("map_bytes", "keyframe_bytes", "keyframes_kept")}
-        figures.update(consistency_mm=consistency.median_mm, consistency_agree=consistency.agree_fraction)
+        if consistency is not None:
+            figures.update(consistency_mm=consistency.median_mm, consistency_agree=consistency.agree_fraction)
         with self._lock:
             if epoch == self._epoch:
-                self._memory = figures
+                self._memory = {**self._memory, **figures}
 
     def snapshot(self) -> SLAM:
         """A copy of the SLAM state between two steps (after close(), the final state itself)."""

@@ -47,7 +47,7 @@ import torch.multiprocessing as tmp
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
-from eslam_core.frames import prepare_frame, working_intrinsics
+from eslam_core.frames import working_images, working_intrinsics
 from eslam_core.slam import SLAM, loaded_trajectory
 from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
@@ -372,13 +372,12 @@ class MultiProcessRuntime(SavingMixin):
         self._check_running()
         check_frame(frame, self.intrinsics)
         arrival = time.monotonic()
-        pf = prepare_frame(frame, self.intrinsics, self.cfg.camera)
-        rgb8 = (pf.rgb * 255.0).round_().to(torch.uint8).numpy()  # exact: prepare_frame made k / 255
+        rgb8, depth = working_images(frame, self.intrinsics, self.cfg.camera)
         live = self.policy == "live"
         with self._submit_lock:
             self._board.add(Counter.RECEIVED)
             while True:
-                written, evicted = self._ring.put(rgb8, pf.depth.numpy(), frame.index, frame.timestamp, frame.pose,
+                written, evicted = self._ring.put(rgb8, depth, frame.index, frame.timestamp, frame.pose,
                                                   arrival, live, timeout=0.1, odom_pose=frame.odom_pose)
                 if evicted:
                     self._board.add(Counter.DROPPED_AT_SUBMIT, evicted)

@@ -92,18 +92,19 @@ class FrameRing:
                 elif not self.cond.wait_for(lambda: self._pending() < self.capacity, timeout):
                     return False, 0
             slot = int(self.counts[self.WRITTEN]) % self.capacity
-        # The slot is not pending, so the reader never looks at it while it is written.
-        self.rgb[slot].copy_(torch.from_numpy(rgb))
-        self.depth[slot].copy_(torch.from_numpy(depth))
+        # The slot is not pending, so the reader never looks at it while it is written. (Numpy copies: torch's
+        # would spread over threads that wait for cores the workers hold, 3 ms per image on 2 cores.)
+        np.copyto(self.rgb[slot].numpy(), rgb)
+        np.copyto(self.depth[slot].numpy(), depth)
         self.index[slot] = index
         self.stamps[slot, 0] = timestamp
         self.stamps[slot, 1] = arrival
         self.has_pose[slot] = gt_pose is not None
         if gt_pose is not None:
-            self.gt_pose[slot].copy_(torch.from_numpy(np.asarray(gt_pose, dtype=np.float64)))
+            np.copyto(self.gt_pose[slot].numpy(), gt_pose)
         self.has_odom[slot] = odom_pose is not None
         if odom_pose is not None:
-            self.odom_pose[slot].copy_(torch.from_numpy(np.asarray(odom_pose, dtype=np.float64)))
+            np.copyto(self.odom_pose[slot].numpy(), odom_pose)
         with self.cond:
             self.counts[self.WRITTEN] += 1
             self.cond.notify_all()
@@ -296,6 +297,40 @@ class Counter(IntEnum):
     CONSISTENCY_PAIRS = 25  # mapper: keyframe pairs of the newest consistency score (0: none yet)
     CONSISTENCY_MM = 26  # mapper: SceneMap.consistency() median, mm
     CONSISTENCY_AGREE = 27  # mapper: its share within 3 cm
+    # The per-stage profile (seconds, summed; see STAGES): where each worker's time goes.
+    TRACK_PREPARE_S = 28  # tracker: frame preparation (depth scale, filters, resize)
+    TRACK_ALIGN_S = 29  # tracker: the front end (prediction, relocalization while lost, tracking, quality)
+    TRACK_KEYFRAME_S = 30  # tracker: a new keyframe indexed for relocalization and handed to the mapper
+    TRACK_REPORT_S = 31  # tracker: the pose sent to the parent
+    MAP_ADD_S = 32  # mapper: keyframes added to the store (the map's growth test and growth, observed space)
+    MAP_STEP_S = 33  # mapper: mapping steps (publications in the middle of a step included)
+    MAP_MEASURE_S = 34  # mapper: memory and the consistency score after each step
+
+
+# The stage counters, each with the events it is divided by: (stage, seconds, events, events not timed). The
+# mapper's first step is the warm-up (not in its stage counters): its stages count the steps after it.
+STAGES = (
+    ("tracker: map read", Counter.READ_SECONDS, Counter.TRACKED, 0),
+    ("tracker: frame preparation", Counter.TRACK_PREPARE_S, Counter.TRACKED, 0),
+    ("tracker: front end (tracking)", Counter.TRACK_ALIGN_S, Counter.TRACKED, 0),
+    ("tracker: new keyframe (index, hand-over)", Counter.TRACK_KEYFRAME_S, Counter.KEYFRAMES, 1),
+    ("tracker: pose to the parent", Counter.TRACK_REPORT_S, Counter.TRACKED, 0),
+    ("mapper: keyframes added (growth, observed space)", Counter.MAP_ADD_S, Counter.MAPPING_STEPS, 1),
+    ("mapper: mapping step", Counter.MAP_STEP_S, Counter.MAPPING_STEPS, 1),
+    ("mapper: map publication", Counter.PUBLISH_SECONDS, Counter.PUBLISHES, 0),
+    ("mapper: memory and consistency", Counter.MAP_MEASURE_S, Counter.MAPPING_STEPS, 0),
+)
+
+
+def stage_profile(counters: dict) -> list[dict]:
+    """The per-stage profile from the workers' counters (`HealthBoard.snapshot`): milliseconds per event (tracked
+    frame, keyframe, mapping step or publication) and seconds in all."""
+    rows = []
+    for name, seconds, events, untimed in STAGES:
+        s, n = counters.get(seconds.name.lower(), 0.0), counters.get(events.name.lower(), 0.0) - untimed
+        rows.append({"stage": name, "per": events.name.lower(), "ms": 1000.0 * s / n if n > 0 else float("nan"),
+                     "total_s": s})
+    return rows
 
 
 class HealthBoard:
@@ -313,8 +348,23 @@ class HealthBoard:
     def add(self, c: Counter, value: float = 1.0) -> None:
         self.values[c] += value
 
+    def timed(self, c: Counter) -> "_Timed":
+        """`with board.timed(c):` adds the block's seconds to c."""
+        return _Timed(self, c)
+
     def snapshot(self) -> dict:
         return {c.name.lower(): float(v) for c, v in zip(Counter, self.values.tolist())}
+
+
+class _Timed:
+    def __init__(self, board: HealthBoard, c: Counter):
+        self.board, self.c = board, c
+
+    def __enter__(self) -> None:
+        self.start = time.perf_counter()
+
+    def __exit__(self, *exc) -> None:
+        self.board.add(self.c, time.perf_counter() - self.start)
 
 
 class Control:

@@ -471,8 +471,10 @@ class TrackerWorker:
             self._refresh_map()
         self.cores.busy(True)
         start = time.monotonic()
-        pf = prepare_frame(Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose, item.odom_pose),
-                           self.intr, self.cfg.camera)
+        board = self.ch.board
+        with board.timed(Counter.TRACK_PREPARE_S):
+            pf = prepare_frame(Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose, item.odom_pose),
+                               self.intr, self.cfg.camera)
         if not self.replica.started:  # the first frame starts the map; the mapper warms it up
             pose0, keyframe = self.frontend.first_pose(pf, self.trajectory), True
             extent = initial_extent(self.cfg, pf, self.intr, pose0)
@@ -481,21 +483,24 @@ class TrackerWorker:
             self.frontend.remember(0, pf, pose0)
             self._hand_over(new_keyframe(pf, torch.from_numpy(pose0).float(), 0), extent)
         else:
-            tracked = self.frontend.track(pf, self.replica, self.trajectory)
+            with board.timed(Counter.TRACK_ALIGN_S):
+                tracked = self.frontend.track(pf, self.replica, self.trajectory)
             # (as in the lock-step SLAM: localization refines nothing, each frame is its own anchor)
             keyframe = tracked.keyframe or self.cfg.run.mode == "localization"
             record = self.trajectory.record(pf.index, pf.timestamp, tracked.pose.double().numpy(), tracked.loss,
                                             pf.gt_pose, keyframe, tracked.quality.value, tracked.lost)
             if tracked.keyframe:
-                self.frontend.remember(record.reference, pf, tracked.pose)
-                self._hand_over(new_keyframe(pf, tracked.pose, record.reference), None)
+                with board.timed(Counter.TRACK_KEYFRAME_S):
+                    self.frontend.remember(record.reference, pf, tracked.pose)
+                    self._hand_over(new_keyframe(pf, tracked.pose, record.reference), None)
         done = time.monotonic()
         log.debug("tracker: frame %d tracked in %.2f s (%d threads)", item.index, done - start, torch.get_num_threads())
-        self.ch.to_parent.put(TrackedFrame(self.epoch, record, keyframe, done - item.arrival, done))
+        with board.timed(Counter.TRACK_REPORT_S):
+            self.ch.to_parent.put(TrackedFrame(self.epoch, record, keyframe, done - item.arrival, done))
         self.tracked += 1
-        self.ch.board.add(Counter.TRACKED)
-        self.ch.board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
-        self.ch.board.set(Counter.TRACKER_DEVICE_PEAK_MB, device_peak_mb(self.replica.device))
+        board.add(Counter.TRACKED)
+        board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
+        board.set(Counter.TRACKER_DEVICE_PEAK_MB, device_peak_mb(self.replica.device))
 
     def _hand_over(self, kf: Keyframe, extent: Optional[np.ndarray]) -> None:
         """Send a new keyframe to the mapper; keep only the newest one's images here."""
@@ -625,15 +630,18 @@ class MapperWorker:
             attach = True
         else:
             field = self.scene.field
-            if self.backlog_limit is not None:  # too far behind: the older keyframes join the newest one's window
-                while len(self.pending) > self.backlog_limit + 1:
-                    self.scene.add_keyframe(self.pending.popleft().keyframe())
-            self.scene.add_keyframe(self.pending.popleft().keyframe())
+            with self.ch.board.timed(Counter.MAP_ADD_S):
+                if self.backlog_limit is not None:  # too far behind: older keyframes join the newest one's window
+                    while len(self.pending) > self.backlog_limit + 1:
+                        self.scene.add_keyframe(self.pending.popleft().keyframe())
+                self.scene.add_keyframe(self.pending.popleft().keyframe())
             self._update_backlog()
             attach = self.scene.field is not field  # grown: a new map, in new shared buffers
             if attach:
                 self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
-            step = self._step(lambda: self.scene.map_newest(self._behind if self.setup.catch_up_iterations else None))
+            with self.ch.board.timed(Counter.MAP_STEP_S):
+                step = self._step(lambda: self.scene.map_newest(
+                    self._behind if self.setup.catch_up_iterations else None))
             loss, refined = (step.loss, {i: p.numpy().copy() for i, p in step.refined.items()}) if step else \
                 (float("nan"), {})
         version = self._publish()
@@ -652,14 +660,16 @@ class MapperWorker:
         board.set(Counter.MAPPER_DEVICE_PEAK_MB, device_peak_mb(self.scene.device))
         board.set(Counter.POINTS_OUTSIDE, self.scene.points_outside)
         board.set(Counter.POINTS_SEEN, self.scene.points_seen)
-        memory = self.scene.memory()
+        with board.timed(Counter.MAP_MEASURE_S):
+            memory = self.scene.memory()
+            consistency = self.scene.consistency() if self.scene.consistency_due() else None
         board.set(Counter.MAP_BYTES, memory["map_bytes"])
         board.set(Counter.KEYFRAME_BYTES, memory["keyframe_bytes"])
         board.set(Counter.KEYFRAMES_KEPT, memory["keyframes_kept"])
-        consistency = self.scene.consistency()
-        board.set(Counter.CONSISTENCY_MM, consistency.median_mm)
-        board.set(Counter.CONSISTENCY_AGREE, consistency.agree_fraction)
-        board.set(Counter.CONSISTENCY_PAIRS, consistency.pairs)
+        if consistency is not None:
+            board.set(Counter.CONSISTENCY_MM, consistency.median_mm)
+            board.set(Counter.CONSISTENCY_AGREE, consistency.agree_fraction)
+            board.set(Counter.CONSISTENCY_PAIRS, consistency.pairs)
         self.ch.to_parent.put(MappingReport(self.epoch, self.steps, version, loss, time.perf_counter() - start,
                                             time.monotonic(), refined))
 

@@ -30,8 +30,7 @@ import torch
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
 from eslam_core.frames import PreparedFrame
-from eslam_core.geometry import depth_points_world, orthonormalize
-from eslam_core.mapping.extent import outside_mask
+from eslam_core.geometry import orthonormalize
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.representation.field import SceneField
@@ -161,9 +160,8 @@ class TrackingFrontEnd:
             found = self.places.relocalize(rgb8(pf), pf.depth.numpy(), self.intr)
             if found is not None:
                 init = torch.from_numpy(orthonormalize(found.pose)).float()
-        # The extent test uses the predicted pose: a few centimetres off at most, and it saves a second pass.
-        usable = self.inside_map(pf, view.extent, init)
-        result = self.tracker.track(view.field, pf, init, usable, view.observed.space, view.newest_keyframe())
+        # (The extent test uses the starting pose: a few centimetres off at most, and it saves a second pass.)
+        result = self.tracker.track(view.field, pf, init, view.extent, view.observed.space, view.newest_keyframe())
         pose = result.pose
         if not torch.isfinite(pose).all():  # a diverged optimisation must not poison the trajectory and the map
             log.warning("frame %d: tracking diverged (non-finite pose); keeping the motion model's prediction",
@@ -211,11 +209,6 @@ class TrackingFrontEnd:
             if keyframe:
                 self.since_keyframe = 0
         return TrackedPose(pose, init, loss, keyframe, quality, self.lost, relocalized_from)
-
-    def inside_map(self, pf: PreparedFrame, extent: np.ndarray, pose: torch.Tensor) -> torch.Tensor:
-        """Pixels whose depth point lies inside the map's extent: the field knows nothing beyond it."""
-        depth = pf.depth.reshape(-1)
-        return ~outside_mask(depth_points_world(self.dirs_cam, depth, pose), extent).reshape(pf.depth.shape)
 
 
 def rgb8(pf: PreparedFrame) -> np.ndarray:

@@ -21,6 +21,7 @@ from eslam_core.cpu import denormals_flushed
 from eslam_core.representation.field import FrozenField, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
 from eslam_core.geometry import depth_points_world, params_to_pose, pose_to_params, rays_to_world, scale_motion
+from eslam_core.mapping.extent import outside_mask
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.rendering.losses import eslam_losses
 from eslam_core.mapping.observed import ObservedSpace
@@ -38,6 +39,21 @@ class TrackingResult:
     depth_fraction: float = float("nan")
     inlier_fraction: float = float("nan")
     observed_fraction: float = float("nan")
+
+
+def draw_in_extent(candidates: torch.Tensor, n: int, world_points, extent: np.ndarray | None
+                   ) -> tuple[torch.Tensor, float]:
+    """Up to n pixels drawn at random (with replacement) from `candidates` whose depth point (`world_points(pixels)`
+    at the starting pose) lies inside the map's extent (the field knows nothing beyond it), and the fraction of the
+    candidates inside, estimated from the draw. Testing only drawn pixels costs 2n points instead of every pixel
+    (12 ms for a 640x480 frame on one core)."""
+    if len(candidates) == 0:
+        return candidates, 0.0
+    draw = candidates[torch.randint(len(candidates), (2 * n,), device=candidates.device)]  # (randperm: 2 ms)
+    if extent is None:
+        return draw[:n], 1.0
+    inside = ~outside_mask(world_points(draw), extent)
+    return draw[inside][:n], float(inside.float().mean())
 
 
 def constant_velocity(prev2: np.ndarray | None, prev: np.ndarray, time_ratio: float = 1.0) -> np.ndarray:
@@ -76,9 +92,10 @@ class Tracker:
 
     @denormals_flushed()  # see cpu.py
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
-              usable: torch.Tensor | None = None, observed: ObservedSpace | None = None,
+              extent: np.ndarray | None = None, observed: ObservedSpace | None = None,
               keyframe: Keyframe | None = None) -> TrackingResult:
-        """`observed` restricts the rays with `tracking.observed_only` (otherwise, as in the paper and the official
+        """Rays are drawn from pixels whose depth point lies in `extent` (the map's) at the starting pose, from a
+        pool of 8 x `tracking.rays` of them; `observed` restricts the rays with `tracking.observed_only` (otherwise, as in the paper and the official
         code, any pixel with depth may be drawn); `keyframe` is not used. Inputs and the result are host tensors;
         the work runs on the field's device."""
         tc = self.cfg.tracking
@@ -86,13 +103,13 @@ class Tracker:
         self._on(device)
         rgb, depth = frame.rgb.to(device).reshape(-1, 3), frame.depth.to(device).reshape(-1)
         start = init_pose.to(device)
-        valid = self.border & (depth > 0)
-        if usable is not None:
-            valid &= usable.to(device).reshape(-1)
-        candidates = torch.nonzero(valid).squeeze(1)
+        candidates = torch.nonzero(self.border & (depth > 0)).squeeze(1)
+        with_depth = len(candidates)
+        candidates, inside = draw_in_extent(candidates, 8 * tc.rays, lambda pix: depth_points_world(
+            self.dirs_cam[pix], depth[pix], start), extent)
         if tc.observed_only and observed is not None:
             candidates = self._in_observed_space(candidates, depth, start, observed)
-        depth_fraction = len(candidates) / max(int(self.border.sum()), 1)
+        depth_fraction = with_depth * inside / max(int(self.border.sum()), 1)
         if len(candidates) < 10 or tc.iterations == 0:
             return TrackingResult(init_pose.clone(), float("nan"), len(candidates), depth_fraction)
         t, q = pose_to_params(start)

@@ -25,6 +25,7 @@ tests read a few numbers back per iteration (six iterations per frame), the pose
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from eslam_core.camera import Intrinsics
@@ -32,11 +33,11 @@ from eslam_core.config import Config
 from eslam_core.cpu import denormals_flushed
 from eslam_core.representation.field import FrozenField, RadianceField, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
-from eslam_core.geometry import so3_exp
+from eslam_core.geometry import depth_points_world, so3_exp
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSpace
 from eslam_core.tracking.photometric import Reference, grey_pyramid, photometric_residuals, sample, to_grey
-from eslam_core.tracking.render_tracker import TrackingResult
+from eslam_core.tracking.render_tracker import TrackingResult, draw_in_extent
 
 SATURATED_COLOR = 3.0  # the colour penalty of a saturated point, in units of its Huber scale
 SATURATED_COST = SATURATED_COLOR - 0.5  # its Huber cost (huber_cost of SATURATED_COLOR)
@@ -112,24 +113,22 @@ class SDFTracker:
 
     @denormals_flushed()  # see cpu.py
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
-              usable: torch.Tensor | None = None, observed: ObservedSpace | None = None,
+              extent: np.ndarray | None = None, observed: ObservedSpace | None = None,
               keyframe: Keyframe | None = None) -> TrackingResult:
-        """Align the frame to the map (SDF and, with `color_weight`, the map's colour) and, with
+        """Align the frame's depth points inside `extent` (the map's, at the starting pose) to the map (SDF and, with `color_weight`, the map's colour) and, with
         `photometric_weight`, to the images of `keyframe` (normally the newest keyframe). Inputs and the result
         are host tensors; the work runs on the field's device."""
         tc, T = self.cfg.tracking, self.cfg.model.truncation
         device = field.device
         self._on(device)
         image, depth = frame.rgb.to(device), frame.depth.to(device).reshape(-1)
-        valid = self.border & (depth > 0)
-        if usable is not None:
-            valid &= usable.to(device).reshape(-1)
-        candidates = torch.nonzero(valid).squeeze(1)
-        depth_fraction = len(candidates) / max(int(self.border.sum()), 1)
-        if len(candidates) < 50 or tc.iterations == 0:
-            return TrackingResult(init_pose.clone(), float("nan"), len(candidates), depth_fraction)
-        n = min(tc.rays, len(candidates))
-        pix = candidates[torch.randint(len(candidates), (n,), device=device)]  # (randperm: 2 ms)
+        start = init_pose.to(device)
+        candidates = torch.nonzero(self.border & (depth > 0)).squeeze(1)
+        pix, inside = draw_in_extent(candidates, min(tc.rays, len(candidates)), lambda pix: depth_points_world(
+            self.dirs_cam[pix], depth[pix], start), extent)
+        depth_fraction = len(candidates) * inside / max(int(self.border.sum()), 1)
+        if len(pix) < 50 or tc.iterations == 0:
+            return TrackingResult(init_pose.clone(), float("nan"), len(pix), depth_fraction)
         p_cam = (self.dirs_cam[pix] * depth[pix, None]).double()
         lam = tc.color_weight
         grey_pixel = to_grey(image.reshape(-1, 3)[pix]) if lam > 0 else None
@@ -138,7 +137,6 @@ class SDFTracker:
             u, v = (pix % self.intr.width).float(), (pix // self.intr.width).float()
             grey_current = [sample(level[None, None], u, v, 2.0**i)[:, 0].double()
                             for i, level in enumerate(grey_pyramid(image, len(ref.levels)))]
-        start = init_pose.to(device)
         R, t = start[:3, :3].double(), start[:3, 3].double()
         used = photo_used = None  # the points scored, fixed at the initial pose so that costs compare
         best_cost, best_Rt, inliers = float("inf"), None, 0.0
@@ -201,4 +199,4 @@ class SDFTracker:
             best = torch.eye(4)
             best[:3, :3], best[:3, 3] = best_Rt[0].float().cpu(), best_Rt[1].float().cpu()
         observed_fraction = float(used.float().mean()) if used is not None else float("nan")
-        return TrackingResult(best, best_cost, len(candidates), depth_fraction, inliers, observed_fraction)
+        return TrackingResult(best, best_cost, len(pix), depth_fraction, inliers, observed_fraction)
