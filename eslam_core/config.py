@@ -347,6 +347,10 @@ class RuntimeConfig:
     # Pipelined: once newer keyframes wait, a mapping step ends after this many iterations divided by their
     # number (None = never), so that the mapper stays within about a keyframe of the tracker.
     catch_up_iterations: Optional[int] = None
+    # Pipelined, offline policy: the tracker waits while more keyframes than this wait to be mapped (None = never).
+    # A tracker faster than the mapper otherwise runs ahead without limit: on 300 ICL frames the map it tracked
+    # against lagged 34 keyframes behind, and on a long run the mapper's queue of keyframes grows with time.
+    max_keyframe_lag: Optional[int] = 4
 
     def validate(self, check) -> None:
         check(self.capacity >= 1, "runtime.capacity", "must be >= 1")
@@ -355,6 +359,8 @@ class RuntimeConfig:
               "must be >= 0, or null for no limit")
         check(self.catch_up_iterations is None or self.catch_up_iterations >= 1, "runtime.catch_up_iterations",
               "must be >= 1, or null for never")
+        check(self.max_keyframe_lag is None or self.max_keyframe_lag >= 0, "runtime.max_keyframe_lag",
+              "must be >= 0, or null for no limit")
 
 
 @dataclass

@@ -9,7 +9,10 @@
 - `keep_freed_memory()`: glibc keeps freed blocks (up to 1 GB) instead of unmapping them, so the per-iteration
   feature and gradient tensors (10-40 MB) are not page-faulted in again every iteration (allocating and writing a
   40 MB tensor: 9 ms by default, 1.4 ms with freed memory kept). The blocks are reused, so peak memory barely
-  changes; freed memory goes back to the system when the process ends.
+  changes; freed memory goes back to the system when the process ends, or when a long-running process calls
+  `release_freed_memory()` now and then (the runtime's workers do, every `RELEASE_EVERY_S`): blocks freed between
+  live ones cannot be trimmed from the heap's top, and over a 20-minute soak they had grown each worker's resident
+  memory by 40-75 %.
 
 Both concern the CPU's arithmetic and the host's allocator. On a GPU run (`run.device: cuda`) the heavy loops run
 on the device and neither setting changes anything there; they stay on for the little host-side work, where they
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import time
 from contextlib import contextmanager
 
 import torch
@@ -37,6 +41,30 @@ def keep_freed_memory() -> bool:
         return bool(libc.mallopt(M_MMAP_THRESHOLD, KEEP_BYTES)) and bool(libc.mallopt(M_TRIM_THRESHOLD, KEEP_BYTES))
     except (OSError, AttributeError, TypeError):
         return False
+
+
+RELEASE_EVERY_S = 30.0
+
+
+def release_freed_memory() -> bool:
+    """Hand the heap's free pages back to the system (glibc's malloc_trim); False where that is not available."""
+    try:
+        return bool(ctypes.CDLL(ctypes.util.find_library("c")).malloc_trim(0))
+    except (OSError, AttributeError, TypeError):
+        return False
+
+
+class PeriodicRelease:
+    """`release()` calls release_freed_memory at most every `every_s` seconds (for a worker's main loop)."""
+
+    def __init__(self, every_s: float = RELEASE_EVERY_S):
+        self.every_s, self.last = every_s, time.monotonic()
+
+    def release(self) -> None:
+        now = time.monotonic()
+        if now - self.last >= self.every_s:
+            self.last = now
+            release_freed_memory()
 
 
 def set_flush_denormals(on: bool, threads: int | None = None) -> int:

@@ -32,7 +32,8 @@ from eslam_core.trajectory import FrameRecord, TrackedTrajectory
 from eslam_core.runtime import RuntimeCrashed, RuntimeSetupError, make_runtime
 from eslam_core.runtime.api import RateMeter
 from eslam_core.runtime import workers
-from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap
+from eslam_core.runtime.shared import STAGES, Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap, \
+    stage_profile
 from eslam_core.runtime.workers import FaultPlan
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -143,6 +144,32 @@ def test_health_of_a_finished_run(runs):
     h = runs[2]["health"]
     # Keeping the tracker's copy of the map current costs milliseconds, against seconds per mapping step.
     assert 0 < h.map_publish_ms < 500 and 0 < h.map_read_ms < 500
+
+
+def test_per_stage_profile_of_a_pipelined_run(runs):
+    """Every stage of both workers was timed, and the stages account for the workers' time: tracking and the
+    mapping step dominate their processes."""
+    profile = {row["stage"]: row for row in stage_profile(runs[2]["rt"].worker_figures())}
+    assert set(profile) == {stage for stage, *_ in STAGES}
+    assert all(row["ms"] > 0 and np.isfinite(row["ms"]) for row in profile.values()), profile
+    tracker = [row for stage, row in profile.items() if stage.startswith("tracker")]
+    mapper = [row for stage, row in profile.items() if stage.startswith("mapper")]
+    assert max(tracker, key=lambda r: r["total_s"])["stage"] == "tracker: front end (tracking)"
+    assert max(mapper, key=lambda r: r["total_s"])["stage"] == "mapper: mapping step"
+    assert sum(r["total_s"] for r in tracker + mapper) < 2 * runs[2]["seconds"]  # two processes at most
+
+
+def test_stage_profile_divides_by_the_timed_events():
+    board = HealthBoard()
+    with board.timed(Counter.TRACK_ALIGN_S):
+        time.sleep(0.02)
+    board.add(Counter.TRACKED, 2)
+    board.add(Counter.MAP_STEP_S, 0.9)
+    board.add(Counter.MAPPING_STEPS, 4)  # the warm-up and 3 timed steps
+    rows = {row["stage"]: row for row in stage_profile(board.snapshot())}
+    assert 10 <= rows["tracker: front end (tracking)"]["ms"] < 50
+    assert rows["mapper: mapping step"]["ms"] == pytest.approx(300.0)
+    assert np.isnan(rows["tracker: new keyframe (index, hand-over)"]["ms"])  # no keyframe timed yet
 
 
 def test_workers_and_shared_memory_are_released(runs):
@@ -528,3 +555,26 @@ def test_mapper_catches_up_only_when_a_newer_keyframe_waits(monkeypatch):
     assert not mapper._behind(1) and mapper._behind(2)
     mapper.pending.extend([object(), object()])  # four waiting (one still queued): one iteration is its share
     assert mapper._behind(1)
+
+
+@pytest.mark.parametrize("lag", [None, 1])
+def test_offline_tracker_stays_within_max_keyframe_lag_of_the_mapper(room_sequence, lag):
+    """A mapper much slower than the tracker: without a limit the tracker runs ahead and the keyframes waiting to
+    be mapped pile up; with runtime.max_keyframe_lag the tracker waits, and no more than the lag (plus the keyframe
+    just handed over) ever waits."""
+    cfg = fast_cfg(mapping={"iterations": 60, "every": 2}, tracking={"iterations": 2},
+                   quality={"enabled": False}, runtime={"max_keyframe_lag": lag})
+    frames = [room_sequence[i] for i in range(17)]
+    rt = make_runtime(cfg, room_sequence.intrinsics, workers=2, policy="offline", threads=1)
+    deepest = 0
+    with rt:
+        for f in frames:
+            rt.submit(f)
+        while rt.health().frames_tracked < len(frames):
+            deepest = max(deepest, rt.health().keyframe_queue_depth)
+            time.sleep(0.01)
+    assert rt.health().frames_tracked == len(frames) and rt.health().keyframes == 9
+    if lag is None:
+        assert deepest >= 4, deepest
+    else:
+        assert 1 <= deepest <= lag + 1, deepest

@@ -10,7 +10,7 @@ from eslam_core.frames import pixel_directions_table, prepare_frame
 from eslam_core.geometry import depth_points_world, rotation_angle_deg
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.mapper import Mapper
-from eslam_core.tracking.render_tracker import Tracker, constant_velocity, outlier_mask
+from eslam_core.tracking.render_tracker import Tracker, constant_velocity, draw_in_extent, outlier_mask
 
 
 def axis_angle(axis, deg):
@@ -103,6 +103,42 @@ def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_we
     est = result.pose.double().numpy()
     assert np.linalg.norm(est[:3, 3] - gt[:3, 3]) < 0.01
     assert rotation_angle_deg(est[:3, :3].T @ gt[:3, :3]) < 0.5
+
+
+def test_draw_in_extent_keeps_only_points_inside_and_estimates_their_share():
+    candidates = torch.arange(0, 2000, 2)  # even pixels; pixel p's point lies at x = p / 1000 m
+    torch.manual_seed(0)
+    drawn, inside = draw_in_extent(candidates, 500, lambda pix: torch.stack(
+        [pix.float() / 1000, torch.zeros(len(pix)), torch.zeros(len(pix))], 1), np.array([[0.0, -1, -1], [0.5, 1, 1]]))
+    assert len(drawn) == 500 and (drawn % 2 == 0).all() and (drawn <= 500).all()  # (a second draw filled it)
+    assert abs(inside - 0.25) < 0.05
+    everything, share = draw_in_extent(candidates, 300, None, None)
+    assert len(everything) == 300 and share == 1.0
+    assert draw_in_extent(candidates[:0], 10, None, None)[0].numel() == 0
+
+
+@pytest.mark.parametrize("method", ["render", "sdf"])
+def test_trackers_use_only_depth_inside_the_maps_extent(fitted_map, room_sequence, method):
+    """A map covering half the room: the trackers see the share of the frame's depth inside it and still
+    converge on that half."""
+    from eslam_core.tracking.sdf_tracker import SDFTracker
+
+    cfg, field, dirs = fitted_map
+    ds = room_sequence
+    frame = prepare_frame(ds[9], ds.intrinsics, cfg.camera)
+    gt = torch.from_numpy(frame.gt_pose).float()
+    d = frame.depth.reshape(-1)
+    x = depth_points_world(dirs[d > 0], d[d > 0], gt)[:, 0]
+    cut = float(x.median())
+    extent = np.array([[-5.0, -5, -5], [cut, 5, 5]])
+    start = frame.gt_pose.copy()
+    start[:3, 3] += np.array([0.01, -0.01, 0.01])
+    tracker = SDFTracker(cfg, dirs, ds.intrinsics) if method == "sdf" else Tracker(cfg, dirs, ds.intrinsics.height,
+                                                                                    ds.intrinsics.width)
+    whole = tracker.track(field, frame, torch.from_numpy(start).float())
+    half = tracker.track(field, frame, torch.from_numpy(start).float(), extent)
+    assert abs(half.depth_fraction - whole.depth_fraction / 2) < 0.06, (half.depth_fraction, whole.depth_fraction)
+    assert np.linalg.norm(half.pose[:3, 3].double().numpy() - frame.gt_pose[:3, 3]) < 0.01
 
 
 def test_constant_velocity_scales_with_the_time_gap():

@@ -3,14 +3,18 @@
 
 Keyframes are kept as uint8 colour and 16-bit depth (0.2 mm steps, up to 13.1 m): 1.76 MB for a 640x480 frame,
 instead of ~22 MB as float64 in the official implementation. A camera that runs for hours still makes a keyframe
-every few frames. A camera that comes back (or stands still) makes keyframes that others already cover: an older
-keyframe that sees nearly all of a new keyframe's surface from about the same pose is dropped, so that the store
-grows with the explored space, not with time. The store also has a budget (`mapping.keyframe_budget_mb`). Over it, the oldest keyframes (not the
-newest `KEEP_FULL`) are *reduced*: their images are kept at every `REDUCED_STRIDE`-th pixel along both axes (1/16 of
-the bytes; mapping draws its few hundred rays per keyframe from the ~19k pixels left). When every old keyframe is
-reduced and the store is still over budget, the reduced keyframe that overlaps the newest keyframe's view most
-(the overlap the window selection measures) is dropped: the newest keyframe sees the same surface, and the feature
-planes keep what was learnt from the dropped one.
+every few frames. A camera that comes back (or stands still) makes keyframes that others already cover: a new
+keyframe whose surface an older one sees nearly all of from about the same pose is *redundant*; it serves the
+mapping windows while it is among the newest `KEEP_FULL` and is dropped when it leaves them, so that the store grows
+with the explored space, not with time. The older keyframe is the one kept: replacing it instead (as this store
+first did) let the map drift with every revisit, each new keyframe posed against a map that the previous
+replacements had fitted (on ICL played back and forth, the lap ATE went from 0.65 to 2.9 cm in 9 minutes of input).
+The store also has a budget (`mapping.keyframe_budget_mb`). Over it, the oldest keyframes (not the newest
+`KEEP_FULL`) are *reduced*: their images are kept at every `REDUCED_STRIDE`-th pixel along both axes (1/16 of the
+bytes; mapping draws its few hundred rays per keyframe from the ~19k pixels left). When every old keyframe is
+reduced and the store is still over budget, the reduced keyframe that overlaps the newest keyframe's view most (the
+overlap the window selection measures) is dropped: the newest keyframe sees the same surface, and the feature planes
+keep what was learnt from the dropped one.
 """
 from __future__ import annotations
 
@@ -25,8 +29,8 @@ DEPTH_STEP = 1.0 / 5000.0  # metres per unit of the stored depth
 DEPTH_MAX = 65535 * DEPTH_STEP
 REDUCED_STRIDE = 4
 KEEP_FULL = 8  # the newest keyframes, which every mapping window holds, are never reduced
-# An older keyframe is redundant with a new one when it sees this much of the new one's surface from about the same
-# place (closer than the distance, turned less than the angle): the new keyframe replaces it.
+# A new keyframe is redundant when an older one sees this much of its surface from about the same place (closer
+# than the distance, turned less than the angle).
 REDUNDANT_OVERLAP, REDUNDANT_DISTANCE_M, REDUNDANT_ANGLE_DEG = 0.9, 0.15, 15.0
 
 
@@ -40,6 +44,7 @@ class Keyframe:
     pose: torch.Tensor  # (4, 4) float32 camera-to-world, refined by mapping
     number: int = 0  # 0, 1, ... in order of creation: the keyframe's name in the trajectory and in messages
     stride: int = 1  # the images hold every stride-th pixel of the frame along both axes (reduced keyframe)
+    redundant: bool = False  # an older keyframe covers its view: dropped once it is not among the newest
 
     @staticmethod
     def from_tensors(frame_index: int, timestamp: float, rgb: torch.Tensor, depth: torch.Tensor,
@@ -128,7 +133,11 @@ class KeyframeStore:
         self.items.append(kf)
         self.made = max(self.made, kf.number + 1)
         if newest_points is not None and len(newest_points):
-            self._drop_redundant(kf, newest_points, intr)
+            kf.redundant = self._covered(kf, newest_points, intr)
+        for i in range(len(self.items) - self.keep_full - 1, -1, -1):  # redundant ones that left the newest
+            if self.items[i].redundant:
+                self.dropped_numbers.append(self.items.pop(i).number)
+                self.dropped += 1
         if self.budget_bytes <= 0:
             return
         total = self.nbytes()
@@ -152,22 +161,20 @@ class KeyframeStore:
             self.dropped += 1
             self.dropped_numbers.append(gone.number)
 
-    def _drop_redundant(self, kf: Keyframe, points: torch.Tensor, intr: Intrinsics) -> None:
-        old = len(self.items) - self.keep_full
-        if old <= 0:
-            return
-        poses = torch.stack([self.items[i].pose for i in range(old)])
+    def _covered(self, kf: Keyframe, points: torch.Tensor, intr: Intrinsics) -> bool:
+        """Whether an older keyframe that stays (not redundant itself) sees nearly all of `kf`'s surface from about
+        its pose."""
+        older = [other for other in self.items[:-1] if not other.redundant]
+        if not older:
+            return False
+        poses = torch.stack([other.pose for other in older])
         near = (poses[:, :3, 3] - kf.pose[:3, 3]).norm(dim=1) < REDUNDANT_DISTANCE_M
         cos = ((poses[:, :3, 2] * kf.pose[:3, 2]).sum(1)).clamp(-1, 1)
         near &= cos > np.cos(np.radians(REDUNDANT_ANGLE_DEG))
         if not near.any():
-            return
-        candidates = torch.nonzero(near).squeeze(1)
-        overlap = overlap_fractions(points, poses[candidates], intr, margin=0)
-        best = int(overlap.argmax())
-        if float(overlap[best]) >= REDUNDANT_OVERLAP:
-            self.dropped_numbers.append(self.items.pop(int(candidates[best])).number)
-            self.dropped += 1
+            return False
+        overlap = overlap_fractions(points, poses[torch.nonzero(near).squeeze(1)], intr, margin=0)
+        return float(overlap.max()) >= REDUNDANT_OVERLAP
 
     def take_dropped(self) -> list[int]:
         """Numbers of the keyframes dropped since the last call (for what indexes keyframes elsewhere)."""

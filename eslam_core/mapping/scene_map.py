@@ -196,8 +196,10 @@ class SceneMap:
 
     def consistency_due(self) -> bool:
         """Whether the runtimes' health should score the consistency again: every CONSISTENCY_EVERY keyframes
-        (25-30 ms a score on one core, a whole keyframe's tracking; a health figure needs no more)."""
-        return self.keyframes.made >= 2 and self.keyframes.made - self._consistency_scored_at >= CONSISTENCY_EVERY
+        (25-30 ms a score on one core with 70 keyframes, a whole keyframe's tracking; a health figure needs no
+        more), and each of a map's first keyframes (few pairs to score, and where a new map goes wrong first)."""
+        made = self.keyframes.made
+        return made >= 2 and (made <= CONSISTENCY_EVERY or made - self._consistency_scored_at >= CONSISTENCY_EVERY)
 
     def consistency(self):
         """The depth consistency of the newest keyframe with older ones under the current poses (a

@@ -57,6 +57,7 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
 from eslam_core.device import peak_memory_mb as device_peak_mb, resolve_device
+from eslam_core.cpu import PeriodicRelease
 from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSurfaces
@@ -400,8 +401,10 @@ class TrackerWorker:
 
     def run(self) -> None:
         self.ch.to_parent.put(WorkerReady("tracker", os.getpid()))
+        memory = PeriodicRelease()
         while not self.ch.control.exiting:
             self.cores.update()
+            memory.release()
             self._sync_epoch()
             self._receive(0.0)
             if self.finished:
@@ -455,6 +458,21 @@ class TrackerWorker:
             self._receive(POLL_S)
             self.cores.update()
 
+    def _unmapped_keyframes(self) -> float:
+        b = self.ch.board  # handed over and still queued, plus received and not yet mapped
+        return b.get(Counter.KEYFRAMES) - b.get(Counter.KEYFRAMES_RECEIVED) + b.get(Counter.KEYFRAME_BACKLOG)
+
+    def _wait_for_mapper(self, lag: int) -> None:
+        """Offline: track against a map at most `lag` keyframes behind (the mapper has the machine meanwhile)."""
+        if self._unmapped_keyframes() <= lag:
+            return
+        self.cores.busy(False)
+        while self._unmapped_keyframes() > lag:
+            if self.ch.control.stopping or self.ch.control.exiting or self.ch.control.epoch != self.epoch:
+                raise Interrupted
+            self._receive(POLL_S)
+            self.cores.update()
+
     def _refresh_map(self) -> None:
         version = self.map.read_into(self.replica.field, self.map_version)
         if version is not None:
@@ -468,6 +486,8 @@ class TrackerWorker:
         self.faults.check("tracker", self.tracked)
         if self.replica.started:
             self._wait_for_map()
+            if not self.live and self.cfg.runtime.max_keyframe_lag is not None:
+                self._wait_for_mapper(self.cfg.runtime.max_keyframe_lag)
             self._refresh_map()
         self.cores.busy(True)
         start = time.monotonic()
@@ -558,8 +578,10 @@ class MapperWorker:
 
     def run(self) -> None:
         self.ch.to_parent.put(WorkerReady("mapper", os.getpid()))
+        memory = PeriodicRelease()
         while not self.ch.control.exiting:
             self.cores.update()
+            memory.release()
             self._sync_epoch()
             self._serve_requests()
             self._receive(0.0 if self.pending else POLL_S)
