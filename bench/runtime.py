@@ -221,7 +221,7 @@ def main() -> int:
                   f"{r['warmup_s']:>9.1f} {r['total_s']:>8.1f} {ate_text:>7} {r['peak_memory_mb']:>8.0f} "
                   f"{r['torch_threads']:>7} {r['load_average_before'][0]:>8.2f}")
     for r in results["runs"].get("pipelined", []):
-        print(f"\nper-stage profile of a pipelined run (ms per event; share of the wall time after the warm-up):")
+        print("\nper-stage profile of a pipelined run (ms per event; share of the wall time after the warm-up):")
         for row in r["stages"]:
             print(f"  {row['stage']:<50} {row['ms']:>8.1f} ms per {row['per']:<14} "
                   f"{100 * row['total_s'] / r['wall_s_after_warm_up']:>5.1f} %")

@@ -103,9 +103,9 @@ class Tracker:
               extent: np.ndarray | None = None, observed: ObservedSpace | None = None,
               keyframe: Keyframe | None = None) -> TrackingResult:
         """Rays are drawn from pixels whose depth point lies in `extent` (the map's) at the starting pose, from a
-        pool of 8 x `tracking.rays` of them; `observed` restricts the rays with `tracking.observed_only` (otherwise, as in the paper and the official
-        code, any pixel with depth may be drawn); `keyframe` is not used. Inputs and the result are host tensors;
-        the work runs on the field's device."""
+        pool of 8 x `tracking.rays` of them; `observed` restricts the rays with `tracking.observed_only`
+        (otherwise, as in the paper and the official code, any pixel with depth may be drawn); `keyframe` is not
+        used. Inputs and the result are host tensors; the work runs on the field's device."""
         tc = self.cfg.tracking
         device = field.device
         self._on(device)

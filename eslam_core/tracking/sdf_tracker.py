@@ -115,9 +115,10 @@ class SDFTracker:
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
               extent: np.ndarray | None = None, observed: ObservedSpace | None = None,
               keyframe: Keyframe | None = None) -> TrackingResult:
-        """Align the frame's depth points inside `extent` (the map's, at the starting pose) to the map (SDF and, with `color_weight`, the map's colour) and, with
-        `photometric_weight`, to the images of `keyframe` (normally the newest keyframe). Inputs and the result
-        are host tensors; the work runs on the field's device."""
+        """Align the frame's depth points inside `extent` (the map's, at the starting pose) to the map (SDF and,
+        with `color_weight`, the map's colour) and, with `photometric_weight`, to the images of `keyframe`
+        (normally the newest keyframe). Inputs and the result are host tensors; the work runs on the field's
+        device."""
         tc, T = self.cfg.tracking, self.cfg.model.truncation
         device = field.device
         self._on(device)
