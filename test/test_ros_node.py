@@ -586,8 +586,8 @@ def test_a_map_saved_by_one_node_is_reused_by_another_which_relocalizes(room_seq
         assert listener.spin_until(lambda: stamp_to_sec(listener.poses[-1].header.stamp) == pytest.approx(
             later.timestamps()[-1]), 30.0, b)  # the last frame is found (lost frames publish no pose)
         # A's map starts at its first camera, and is as right as A's live tracking of a few frames: the last pose
-        # was up to 6.3 cm off in 6 runs (3 over 5 cm, before and after session 9's changes), mostly along the view; a
-        # relocalization against the wrong keyframe or in the wrong frame is off by tens of centimetres.
+        # was up to 6.3 cm off in 6 runs (3 over 5 cm, before and after session 9's changes), mostly along the
+        # view; a relocalization against the wrong keyframe or in the wrong frame is off by tens of centimetres.
         truth = np.linalg.inv(first.gt_poses()[0]) @ later.gt_poses()[-1]
         assert np.linalg.norm(msg_to_pose(listener.poses[-1].pose)[:3, 3] - truth[:3, 3]) < 0.08
         b.send_signal(signal.SIGINT)
