@@ -424,8 +424,7 @@ class MultiProcessRuntime(SavingMixin):
                 tracking_hz=self._tracking_rate.rate(),
                 mapping_hz=self._mapping_rate.rate(),
                 input_queue_depth=self._ring.pending(),
-                keyframe_queue_depth=int(b.get(Counter.KEYFRAMES) - b.get(Counter.KEYFRAMES_RECEIVED)
-                                         + b.get(Counter.KEYFRAME_BACKLOG)),
+                keyframe_queue_depth=b.unmapped_keyframes(),
                 map_version=self._map_meta.version,
                 latency_ms_last=self._latency.last_ms,
                 latency_ms_mean=self._latency.mean_ms,

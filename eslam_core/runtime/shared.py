@@ -21,6 +21,7 @@ multiprocessing's resource tracker if the parent is killed).
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Optional
@@ -298,7 +299,7 @@ class Counter(IntEnum):
     CONSISTENCY_MM = 26  # mapper: SceneMap.consistency() median, mm
     CONSISTENCY_AGREE = 27  # mapper: its share within 3 cm
     # The per-stage profile (seconds, summed; see STAGES): where each worker's time goes.
-    TRACK_PREPARE_S = 28  # tracker: frame preparation (depth scale, filters, resize)
+    TRACK_PREPARE_S = 28  # tracker: the ring's images as the method's tensors (prepare_frame)
     TRACK_ALIGN_S = 29  # tracker: the front end (prediction, relocalization while lost, tracking, quality)
     TRACK_KEYFRAME_S = 30  # tracker: a new keyframe indexed for relocalization and handed to the mapper
     TRACK_REPORT_S = 31  # tracker: the pose sent to the parent
@@ -348,23 +349,23 @@ class HealthBoard:
     def add(self, c: Counter, value: float = 1.0) -> None:
         self.values[c] += value
 
-    def timed(self, c: Counter) -> "_Timed":
+    @contextmanager
+    def timed(self, c: Counter):
         """`with board.timed(c):` adds the block's seconds to c."""
-        return _Timed(self, c)
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.add(c, time.perf_counter() - start)
+
+    def unmapped_keyframes(self) -> int:
+        """Keyframes the tracker made that are not mapped yet: still in the queue, or received and waiting (or in
+        the step under way)."""
+        return int(self.get(Counter.KEYFRAMES) - self.get(Counter.KEYFRAMES_RECEIVED)
+                   + self.get(Counter.KEYFRAME_BACKLOG))
 
     def snapshot(self) -> dict:
         return {c.name.lower(): float(v) for c, v in zip(Counter, self.values.tolist())}
-
-
-class _Timed:
-    def __init__(self, board: HealthBoard, c: Counter):
-        self.board, self.c = board, c
-
-    def __enter__(self) -> None:
-        self.start = time.perf_counter()
-
-    def __exit__(self, *exc) -> None:
-        self.board.add(self.c, time.perf_counter() - self.start)
 
 
 class Control:

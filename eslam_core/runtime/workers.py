@@ -458,16 +458,12 @@ class TrackerWorker:
             self._receive(POLL_S)
             self.cores.update()
 
-    def _unmapped_keyframes(self) -> float:
-        b = self.ch.board  # handed over and still queued, plus received and not yet mapped
-        return b.get(Counter.KEYFRAMES) - b.get(Counter.KEYFRAMES_RECEIVED) + b.get(Counter.KEYFRAME_BACKLOG)
-
     def _wait_for_mapper(self, lag: int) -> None:
         """Offline: track against a map at most `lag` keyframes behind (the mapper has the machine meanwhile)."""
-        if self._unmapped_keyframes() <= lag:
+        if self.ch.board.unmapped_keyframes() <= lag:
             return
         self.cores.busy(False)
-        while self._unmapped_keyframes() > lag:
+        while self.ch.board.unmapped_keyframes() > lag:
             if self.ch.control.stopping or self.ch.control.exiting or self.ch.control.epoch != self.epoch:
                 raise Interrupted
             self._receive(POLL_S)
