@@ -13,6 +13,7 @@ the newest frame when tracking falls behind). Prints a table and writes JSON.
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import os
 import signal
@@ -84,6 +85,47 @@ def warmed_up(status: dict) -> bool:
     return int(status.get("map_version", 0)) > 0 and int(status.get("keyframe_queue_depth", 1)) == 0
 
 
+def process_tree_cpu(root: int) -> dict[str, float]:
+    """CPU seconds (user + system) of `root` and its descendants, by process name (/proc/<pid>/comm: the
+    runtime's workers name themselves eslam-tracker, eslam-mapper, eslam-mesh); Linux only, else empty."""
+    stats = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                text = (entry / "stat").read_text()
+            except OSError:
+                continue
+            name, rest = text[text.index("(") + 1:text.rindex(")")], text[text.rindex(")") + 2:].split()
+            stats[int(entry.name)] = (name, int(rest[1]), (int(rest[11]) + int(rest[12])) / os.sysconf("SC_CLK_TCK"))
+    tree, frontier = {root}, [root]
+    while frontier:
+        parent = frontier.pop()
+        children = [pid for pid, (_, ppid, _) in stats.items() if ppid == parent and pid not in tree]
+        tree.update(children)
+        frontier += children
+    cpu: dict[str, float] = {}
+    for pid in tree & set(stats):
+        name = "node" if pid == root else stats[pid][0]
+        cpu[name] = cpu.get(name, 0.0) + stats[pid][2]
+    return cpu
+
+
+def print_profile(status: dict) -> None:
+    """The per-stage profile from the node's last status: the node's own share, then the workers' stages."""
+    if not status:
+        return
+    print("per-stage profile (ms per event):")
+    for key, per in (("node_ms_per_pair_in", "rgb-depth pair"), ("node_ms_per_pose_out", "published pose")):
+        if key in status:
+            print(f"  {'node: ' + key[8:]:<52} {float(status[key]):7.1f}  per {per}")
+    try:
+        stages = ast.literal_eval(status.get("stage_ms", "{}"))
+    except (ValueError, SyntaxError):
+        stages = {}
+    for stage, ms in stages.items():
+        print(f"  {stage:<52} {ms:7.1f}")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, help="data set folder (default: the synthetic room)")
@@ -142,8 +184,14 @@ def main() -> int:
             time.sleep(0.1)
         warm_up_s = time.monotonic() - start
         load_before = os.getloadavg()
+        print(f"map warmed up in {time.monotonic() - start:.1f} s; streaming {len(ds) - 1} frames ...", flush=True)
+        cpu_before, bench_before, play_start = process_tree_cpu(node.pid), time.process_time(), time.monotonic()
         played = play_bag(bag, rate=args.rate, wait_for_subscribers=60.0, qos=qos)
         end_of_play = time.monotonic()
+        cpu_after, bench_after = process_tree_cpu(node.pid), time.process_time()
+        cpu_share = {name: 100 * (cpu_after[name] - cpu_before.get(name, 0.0)) / (end_of_play - play_start)
+                     for name in cpu_after}
+        cpu_share["this benchmark (player, listener)"] = 100 * (bench_after - bench_before) / (end_of_play - play_start)
         last = len(listener.poses)
         while time.monotonic() - end_of_play < args.settle:  # the node may still be tracking queued frames
             time.sleep(1.0)
@@ -184,7 +232,7 @@ def main() -> int:
         "latency_ms": {"median": float(np.median(latency) * 1000), "p90": float(np.percentile(latency, 90) * 1000),
                        "max": float(latency.max() * 1000), "mean": float(latency.mean() * 1000)}
         if len(latency) else None,
-        "ate_rmse_cm_of_published_poses": ate_cm, "node_status": status, "load_before": load_before,
+        "ate_rmse_cm_of_published_poses": ate_cm, "cpu_percent_during_play": cpu_share, "node_status": status, "load_before": load_before,
         "node_log": str(log_path),
     }
     print(f"\n{len(ds)} frames at {30 * args.rate:.0f} Hz through slam_node (preset {args.preset}, "
@@ -197,6 +245,9 @@ def main() -> int:
         print(f"latency image -> pose: median {lat['median']:.0f} ms, p90 {lat['p90']:.0f} ms, max {lat['max']:.0f} ms")
     if ate_cm is not None:
         print(f"ATE RMSE of the published (as-tracked) poses: {ate_cm:.2f} cm over {len(known)} poses")
+    print("CPU during the stream (% of one core): " + ", ".join(f"{name} {share:.0f}"
+                                                               for name, share in cpu_share.items()))
+    print_profile(status)
     print(f"node exit code {node.returncode}; log {log_path}")
     args.out.write_text(json.dumps(results, indent=2))
     print(f"results -> {args.out}")

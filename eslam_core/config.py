@@ -351,6 +351,10 @@ class RuntimeConfig:
     # A tracker faster than the mapper otherwise runs ahead without limit: on 300 ICL frames the map it tracked
     # against lagged 34 keyframes behind, and on a long run the mapper's queue of keyframes grows with time.
     max_keyframe_lag: Optional[int] = 4
+    # Pipelined: the mapping process's niceness (0-19). Tracking sets the pose latency and mapping can catch up
+    # later (its steps are cut short while keyframes wait), so on a machine short of cores the mapper gets the
+    # time that tracking and the node leave.
+    mapper_nice: int = 10
 
     def validate(self, check) -> None:
         check(self.capacity >= 1, "runtime.capacity", "must be >= 1")
@@ -361,6 +365,7 @@ class RuntimeConfig:
               "must be >= 1, or null for never")
         check(self.max_keyframe_lag is None or self.max_keyframe_lag >= 0, "runtime.max_keyframe_lag",
               "must be >= 0, or null for no limit")
+        check(0 <= self.mapper_nice <= 19, "runtime.mapper_nice", "must be a niceness from 0 to 19")
 
 
 @dataclass

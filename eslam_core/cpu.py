@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import os
 import time
 from contextlib import contextmanager
 
@@ -30,6 +31,7 @@ import torch
 from eslam_core.native import load_kernel
 
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters
+PR_SET_NAME = 15  # prctl option
 KEEP_BYTES = 1 << 30
 _flush_depth = 0  # nesting of denormals_flushed() blocks in this process
 
@@ -65,6 +67,23 @@ class PeriodicRelease:
         if now - self.last >= self.every_s:
             self.last = now
             release_freed_memory()
+
+
+def lower_priority(nice: int, pid: int = 0) -> None:
+    """Give a process (0: this one) the nice value `nice`, where the platform has nice values."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, pid, nice)
+    except (AttributeError, OSError):
+        pass
+
+
+def name_process(name: str) -> None:
+    """Name this process (Linux: what `top`, `ps -o comm` and /proc/<pid>/comm show; at most 15 characters), so
+    that a user and the benchmarks tell the workers apart."""
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c")).prctl(PR_SET_NAME, name.encode()[:15], 0, 0, 0)
+    except (OSError, AttributeError, TypeError):
+        pass
 
 
 def set_flush_denormals(on: bool, threads: int | None = None) -> int:

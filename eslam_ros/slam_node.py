@@ -5,7 +5,7 @@ Data flow
                   +-- approximate-time pairing -- convert and check -- Frame -- runtime.submit
     depth/image --+          (InputPipeline)          ^
                                                       +-- latest rgb/camera_info (cached, not paired)
-    runtime.poll()        -> ~/pose, ~/odom, TF      (every 10 ms)
+    runtime.poll()        -> ~/pose, ~/odom, TF      (a thread of its own: each pose as soon as it is made)
     runtime.trajectory()  -> ~/path                  (refined keyframe poses included, every path_period)
     runtime.snapshot()    -> ~/mesh                  (blocks that changed, meshed at nice 19: mesh_publication.py)
     runtime.health()      -> ~/status                (diagnostic_msgs/DiagnosticArray, every status_period)
@@ -98,6 +98,7 @@ STREAM_NAMES = ("rgb/image", "depth/image")
 EXIT_OK, EXIT_FAILED, EXIT_BAD_PARAMETERS, EXIT_INTERRUPTED = 0, 1, 2, 130
 # At shutdown with the live policy: how long the frame in progress may take before the runtime is stopped.
 LIVE_DRAIN_TIMEOUT_S = 10.0
+POSE_WAIT_S = 0.05  # the pose thread's longest wait for a pose (it checks for a stop request in between)
 
 
 # ================================================================================================= input pipeline
@@ -411,6 +412,26 @@ class CallbackGate:
             return self._condition.wait_for(lambda: self._running == 0, timeout)
 
 
+class PeriodicThread:
+    """Calls `body` every `period` seconds (0: again at once; the body then waits itself) on a thread of its
+    own, until stopped."""
+
+    def __init__(self, name: str, period: float, body: Callable[[], Any]) -> None:
+        self._stop = threading.Event()
+        self._period, self._body = period, body
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._period):
+            self._body()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join()
+
+
 def _refused(request: Any, response: Any) -> Any:
     response.success, response.message = False, "the node is shutting down or failed; see its log"
     return response
@@ -456,6 +477,10 @@ class _Outputs:
     restarts: int = 0
     dropped_while_starting: int = 0
     latency: _Latency = field(default_factory=_Latency)
+    # The node's own share of the work (seconds, summed): image callbacks (pairing, conversion, hand-over to the
+    # runtime) and pose publication (poll, messages, TF).
+    input_seconds: float = 0.0
+    output_seconds: float = 0.0
 
 
 class SlamNode(Node):
@@ -580,18 +605,19 @@ class SlamNode(Node):
             self._subscriptions_in.append(self.create_subscription(
                 Odometry, "odom", gate(self._on_odometry), input_qos(s.input_qos, max(s.input_queue_depth, 100)),
                 callback_group=self._odometry_in))
-        timers = [self.create_timer(0.01, gate(self._publish_poses), callback_group=self._io),
-                  self.create_timer(s.path_period, gate(self._publish_path), callback_group=self._io)]
+        timers = [self.create_timer(s.path_period, gate(self._publish_path), callback_group=self._io),
+                  self.create_timer(min(0.1, s.sync_idle_flush or 0.1), gate(self._tick_inputs),
+                                    callback_group=self._io)]
         if self.odometry is not None:
             timers.append(self.create_timer(0.02, gate(self._release_odometry), callback_group=self._io))
-        if s.sync_idle_flush > 0:
-            timers.append(self.create_timer(min(0.1, s.sync_idle_flush), gate(self._flush_if_idle),
-                                            callback_group=self._io))
-        if s.mesh_period > 0:
-            timers.append(self.create_timer(min(MESH_POLL_S, s.mesh_period), gate(self._publish_mesh),
-                                            callback_group=self._slow))
         self._active_entities = self._subscriptions_in + timers
         self.active = True
+        # Poses go out from a thread that waits for them (no polling delay, no executor wake-ups 100 times a
+        # second), the mesh from one of its own (a map snapshot takes up to seconds): neither holds the executor.
+        self._threads = [PeriodicThread("eslam-poses", 0.0, self._pose_out)]
+        if s.mesh_period > 0:
+            self._threads.append(PeriodicThread("eslam-mesh-out", min(MESH_POLL_S, s.mesh_period),
+                                               gate(self._publish_mesh)))
 
     def deactivate_slam(self) -> None:
         """Stop taking input and publishing periodically; the runtime and its map stay (tracking and mapping pause
@@ -600,6 +626,7 @@ class SlamNode(Node):
         for entity in self._active_entities:
             self._destroy(entity)
         self._active_entities = []
+        self._stop_threads()
         if self.runtime is not None and not self.failed:
             self._drain(LIVE_DRAIN_TIMEOUT_S)
 
@@ -669,9 +696,10 @@ class SlamNode(Node):
         self._handle(self.pipeline.add_camera_info(msg))
 
     def _on_image(self, stream: int, msg: Image) -> None:
-        self._last_image = time.monotonic()
+        start = self._last_image = time.monotonic()
         self.inputs.arrived(STREAM_NAMES[stream], self._last_image)
         self._handle(self.pipeline.add_image(stream, msg, self._last_image))
+        self.outputs.input_seconds += time.monotonic() - start
 
     def _on_odometry(self, msg: Odometry) -> None:
         self.inputs.arrived("odom")
@@ -712,9 +740,13 @@ class SlamNode(Node):
                 self._frame_odometry[accepted.frame.index] = odometry
         return dataclasses.replace(accepted, frame=frame)
 
-    def _flush_if_idle(self) -> None:
-        """No image for a while: the stream ended (or paused), so the pending pair will not get a better match."""
-        if self.pipeline.sync.pending and time.monotonic() - self._last_image > self.settings.sync_idle_flush:
+    def _tick_inputs(self) -> None:
+        """Frames held while the runtime started go to it once it runs; after `sync_idle_flush` s without an image
+        the stream ended (or paused), so the pending pair will not get a better match."""
+        if self.runtime is not None:
+            self._submit_held()
+        idle = self.settings.sync_idle_flush
+        if idle > 0 and self.pipeline.sync.pending and time.monotonic() - self._last_image > idle:
             self._handle(self.pipeline.flush())
 
     def _handle(self, events: Sequence[PipelineEvent]) -> None:
@@ -780,17 +812,33 @@ class SlamNode(Node):
 
     # ------------------------------------------------------------------------------------------ outputs
 
-    def _publish_poses(self) -> None:
+    def _pose_out(self) -> None:
+        if self.runtime is None or self.failed or self.gate.closed:
+            time.sleep(POSE_WAIT_S)
+            return
+        try:
+            self._publish_poses(wait=POSE_WAIT_S)
+        except Exception as error:  # noqa: BLE001 - reported, and the node goes on (or stops, if SLAM died)
+            self._on_callback_error(error)
+
+    def _stop_threads(self) -> None:
+        """After this, poses are published by the caller (`_drain`) only, so they stay in order."""
+        for thread in getattr(self, "_threads", []):
+            thread.stop()
+        self._threads = []
+
+    def _publish_poses(self, wait: float = 0.0) -> None:
         if self.runtime is None or self.failed:
             return
-        self._submit_held()  # frames that arrived while the runtime was starting
         try:
-            updates = self.runtime.poll()
+            updates = self.runtime.poll(timeout=wait)
         except RuntimeCrashed as error:
             self._fail(f"the SLAM runtime crashed: {error}")
             return
+        start = time.monotonic()
         for update in updates:
             self._publish_pose(update)
+        self.outputs.output_seconds += time.monotonic() - start
 
     def _publish_pose(self, update: Any) -> None:
         with self._lock:
@@ -941,6 +989,8 @@ class SlamNode(Node):
         values["latency_ms_receive_to_pose_last"] = 1000 * self.outputs.latency.last
         values["latency_ms_receive_to_pose_mean"] = 1000 * self.outputs.latency.mean
         values["latency_ms_receive_to_pose_max"] = 1000 * self.outputs.latency.worst
+        values["node_ms_per_pair_in"] = 1000 * self.outputs.input_seconds / max(self.pipeline.pairs, 1)
+        values["node_ms_per_pose_out"] = 1000 * self.outputs.output_seconds / max(self.outputs.poses, 1)
         return values
 
     def _publish_status(self) -> None:
@@ -1079,6 +1129,7 @@ class SlamNode(Node):
         """
         if not self.gate.close(timeout=120.0):
             self.get_logger().warning("a callback is still running after 120 s; shutting down anyway")
+        self._stop_threads()
         self.mesh.close()
         if self._starter is not None:
             self._starter.join()  # the runtime bounds its own start-up time
@@ -1111,6 +1162,7 @@ class SlamNode(Node):
 
     def abort(self) -> None:
         """Stop the runtime at once, saving nothing (a second Ctrl-C)."""
+        self._stop_threads()
         self.mesh.close()
         if self.runtime is not None:
             try:
@@ -1153,6 +1205,18 @@ class _StopRequest:
         self.requested = True
 
 
+def node_executor() -> Any:
+    """rclpy's EventsExecutor where this rclpy has it, else a MultiThreadedExecutor. The node measured 40 % of a
+    core in the MultiThreadedExecutor's own Python bookkeeping (a wait set rebuilt at every wake-up, several per
+    image) against 27 % in all with the EventsExecutor (docs/ros.md). It runs every callback on one thread, so the
+    node keeps what may take long off it: poses and the mesh have threads of their own."""
+    try:
+        from rclpy.experimental import EventsExecutor
+    except ImportError:
+        return MultiThreadedExecutor(num_threads=2)
+    return EventsExecutor()
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     use_shipped_fastdds_profile()
     # rclpy's own handlers would shut the context down at once; ours let the node save its outputs first.
@@ -1166,7 +1230,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         rclpy.logging.get_logger("slam_node").fatal(f"invalid parameters: {error}")
         rclpy.try_shutdown()
         return EXIT_BAD_PARAMETERS
-    executor = MultiThreadedExecutor(num_threads=2)
+    executor = node_executor()
     executor.add_node(node)
     status = EXIT_INTERRUPTED
     try:

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from eslam_core.camera import Intrinsics
+from eslam_core.cpu import lower_priority, name_process
 from eslam_core.outputs.mesh import MeshSettings
 from eslam_core.outputs.mesh_blocks import (BlockLayout, IncrementalMesher, Key, MapView, map_view, thinning_stride,
                                             triangle_soup)
@@ -161,15 +162,6 @@ class _Worker:
                        list(snapshot.keyframe_ids), snapshot.poses, [self.depths[k] for k in snapshot.keyframe_ids])
 
 
-def _lower_priority(pid: int, nice: int) -> None:
-    """Give a process the nice value `nice` (where the platform has nice values; elsewhere it still runs in a
-    process of its own)."""
-    try:
-        os.setpriority(os.PRIO_PROCESS, pid, nice)
-    except (AttributeError, OSError):
-        pass
-
-
 def _exit_with_parent(parent_pid: int) -> None:
     """A thread that ends the process once its parent is gone (even SIGKILLed: the pipe alone would not tell a
     process blocked in recv)."""
@@ -187,7 +179,8 @@ def _serve(connection, setup: _Setup) -> None:
         signal.signal(sig, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
     _exit_with_parent(setup.parent_pid)
-    _lower_priority(os.getpid(), setup.nice)
+    lower_priority(setup.nice)
+    name_process("eslam-mesh")
     torch.set_num_threads(1)
     worker = _Worker(setup)
     connection.send("ready")
@@ -245,7 +238,7 @@ class BackgroundMesher:
             self._process.start()
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, previous)
-        _lower_priority(self._process.pid, self.setup.nice)  # now, before it spends seconds importing torch
+        lower_priority(self.setup.nice, self._process.pid)  # now, before it spends seconds importing torch
         child.close()
         try:
             started = self._connection.poll(START_TIMEOUT_S) and self._receive() == "ready"

@@ -87,6 +87,8 @@ class Health:
     # evaluation/consistency.py): median |depth residual| in mm and the share within 3 cm; NaN before two keyframes.
     consistency_mm: float = math.nan
     consistency_agree: float = math.nan
+    # Where the workers' time goes: milliseconds per event of each stage (runtime/shared.py: STAGES; multi-process).
+    stage_ms: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -98,7 +100,9 @@ class SLAMRuntime(Protocol):
 
     def submit(self, frame: Frame) -> None: ...
 
-    def poll(self) -> list[PoseUpdate]: ...
+    def poll(self, timeout: float = 0.0) -> list[PoseUpdate]:
+        """The poses tracked since the last call, oldest first; waits up to `timeout` seconds when there is none
+        yet (a publisher thread that sends each pose as soon as it is made)."""
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]: ...
 

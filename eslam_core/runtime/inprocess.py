@@ -56,6 +56,7 @@ class InProcessRuntime(SavingMixin):
         self._closing = self._stop_now = False
         self._slam_lock = threading.Lock()  # held for a whole step: the SLAM object is consistent between steps
         self._lock = threading.Lock()  # guards what the caller reads: mirror, updates, meters
+        self._posed = threading.Condition(self._lock)  # a new pose update (or a crash)
         self._started = self._closed = False
         self._crash: Optional[RuntimeCrashed] = None
         self._thread: Optional[threading.Thread] = None
@@ -115,10 +116,14 @@ class InProcessRuntime(SavingMixin):
             self._inputs.append(item)
             self._cond.notify_all()
 
-    def poll(self) -> list[PoseUpdate]:
+    def poll(self, timeout: float = 0.0) -> list[PoseUpdate]:
         if self._crash is not None and not self._closed:
             raise self._crash
-        with self._lock:
+        with self._posed:
+            if timeout > 0 and not self._updates and self._started and not self._closed:
+                self._posed.wait(timeout)
+                if self._crash is not None:
+                    raise self._crash
             out, self._updates = self._updates, []
         return out
 
@@ -253,6 +258,7 @@ class InProcessRuntime(SavingMixin):
                         self._latency.add(done - arrival)
                         if res.keyframe:
                             self._mapping_rate.tick(done)
+                        self._posed.notify_all()
                 if res.keyframe:  # after the pose is out: the consistency score takes tens of ms
                     self._measure_map(epoch)
                 with self._cond:
@@ -264,6 +270,8 @@ class InProcessRuntime(SavingMixin):
             log.error("%s\n%s", self._crash.summary, self._crash.traceback)
             with self._cond:
                 self._cond.notify_all()
+            with self._posed:
+                self._posed.notify_all()
 
     def _after_iteration(self, optimizer, args, kwargs) -> None:
         if threading.current_thread() is self._thread and (self._stop_now or self._step_epoch != self._epoch):

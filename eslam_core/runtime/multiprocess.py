@@ -53,7 +53,7 @@ from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
 from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, \
     check_frame, check_policy, peak_rss_mb
-from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta
+from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta, stage_profile
 from eslam_core.runtime.workers import EXIT_ORPHANED, STOP_SIGNALS, Channels, MapperFinished, MapperSnapshot, MappingReport, SnapshotRequest, \
     TrackedFrame, TrackerFinished, WorkerReady, WorkerSetup, mapper_main, tracker_main
 
@@ -146,6 +146,9 @@ class MultiProcessRuntime(SavingMixin):
         self.work_intr = working_intrinsics(intrinsics, cfg.camera)
         self._started = self._closed = False
         self._lock = threading.RLock()  # parent-side state: mirror, pending updates, meters
+        # One thread at a time takes the workers' messages (in order); the wait for the first one holds only this
+        # lock, so that a thread waiting for poses (poll with a timeout) does not hold up readers of the state.
+        self._reading = threading.Lock()
         self._submit_lock = threading.Lock()  # the frame ring has a single writer
         self._crash: Optional[RuntimeCrashed] = None
         self._expected_exit = False
@@ -314,20 +317,27 @@ class MultiProcessRuntime(SavingMixin):
         self._raise_if_crashed()
 
     # -------------------------------------------------------------------------------------------- messages in
-    def _pump(self, block_s: float = 0.0) -> None:
-        """Take every message the workers sent the parent (waiting up to `block_s` for the first)."""
+    def _pump(self, block_s: float = 0.0, take_turn: bool = False) -> None:
+        """Take every message the workers sent the parent (waiting up to `block_s` for the first). A call that
+        neither waits nor `take_turn`s returns at once while another thread is taking messages: that one handles
+        them."""
         q = self._queues["to_parent"]
-        with self._lock:
+        if not self._reading.acquire(blocking=block_s > 0 or take_turn):
+            return
+        try:
             try:
                 msg = q.get(timeout=block_s) if block_s > 0 else q.get_nowait()
             except queue.Empty:
                 return
-            while True:
-                self._handle(msg)
-                try:
-                    msg = q.get_nowait()
-                except queue.Empty:
-                    return
+            with self._lock:
+                while True:
+                    self._handle(msg)
+                    try:
+                        msg = q.get_nowait()
+                    except queue.Empty:
+                        return
+        finally:
+            self._reading.release()
 
     def _handle(self, msg) -> None:
         if isinstance(msg, WorkerReady):
@@ -388,10 +398,13 @@ class MultiProcessRuntime(SavingMixin):
                     self._board.add(Counter.DROPPED_AT_SUBMIT)
                     return
 
-    def poll(self) -> list[PoseUpdate]:
+    def poll(self, timeout: float = 0.0) -> list[PoseUpdate]:
         if self._started and not self._closed:
             self._raise_if_crashed()
             self._pump()
+            if timeout > 0 and not self._updates:
+                self._pump(block_s=timeout)
+                self._raise_if_crashed()
         with self._lock:
             out, self._updates = self._updates, []
         return out
@@ -437,6 +450,8 @@ class MultiProcessRuntime(SavingMixin):
                 consistency_agree=b.get(Counter.CONSISTENCY_AGREE) if b.get(Counter.CONSISTENCY_PAIRS) else math.nan,
                 peak_memory_mb={"parent": peak_rss_mb(), "tracker": b.get(Counter.TRACKER_PEAK_MB),
                                 "mapper": b.get(Counter.MAPPER_PEAK_MB)},
+                stage_ms={row["stage"]: round(row["ms"], 2) for row in stage_profile(b.snapshot())
+                          if not math.isnan(row["ms"])},
             )
 
     def worker_figures(self) -> dict:
@@ -450,8 +465,8 @@ class MultiProcessRuntime(SavingMixin):
         if self._final is not None:
             return self._final
         self._check_running()
+        self._pump(take_turn=True)
         with self._lock:
-            self._pump()
             # (in localization every frame anchors the trajectory, and no keyframe goes to the mapper)
             keyframes = self._mirror.keyframes if self.cfg.run.mode == "slam" else 0
             trajectory, epoch = self._mirror.state_dict(), self._epoch
@@ -507,8 +522,8 @@ class MultiProcessRuntime(SavingMixin):
         except RuntimeCrashed as e:
             crash = e
         finally:
+            self._pump(take_turn=True)
             with self._lock:
-                self._pump()
                 self._last_health = self._health_now()
                 self._last_counters = self._board.snapshot()
             self._shutdown()

@@ -57,7 +57,7 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
 from eslam_core.device import peak_memory_mb as device_peak_mb, resolve_device
-from eslam_core.cpu import PeriodicRelease
+from eslam_core.cpu import PeriodicRelease, lower_priority, name_process
 from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSurfaces
@@ -265,6 +265,7 @@ def become_worker(name: str, setup: WorkerSetup) -> None:
         signal.signal(sig, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     die_with_parent(setup.parent_pid)
+    name_process(f"eslam-{name}")
     logging.basicConfig(level=setup.log_level, format=f"%(levelname)s eslam.{name}: %(message)s")
     torch.set_num_threads(setup.threads)
     torch.manual_seed(setup.cfg.run.seed)
@@ -492,7 +493,7 @@ class TrackerWorker:
             pf = prepare_frame(Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose, item.odom_pose),
                                self.intr, self.cfg.camera)
         if not self.replica.started:  # the first frame starts the map; the mapper warms it up
-            pose0, keyframe = self.frontend.first_pose(pf, self.trajectory), True
+            pose0, keyframe, tracked = self.frontend.first_pose(pf, self.trajectory), True, None
             extent = initial_extent(self.cfg, pf, self.intr, pose0)
             self.replica.start(extent)
             record = self.trajectory.record(pf.index, pf.timestamp, pose0, 0.0, pf.gt_pose, keyframe=True)
@@ -505,18 +506,22 @@ class TrackerWorker:
             keyframe = tracked.keyframe or self.cfg.run.mode == "localization"
             record = self.trajectory.record(pf.index, pf.timestamp, tracked.pose.double().numpy(), tracked.loss,
                                             pf.gt_pose, keyframe, tracked.quality.value, tracked.lost)
-            if tracked.keyframe:
-                with board.timed(Counter.TRACK_KEYFRAME_S):
-                    self.frontend.remember(record.reference, pf, tracked.pose)
-                    self._hand_over(new_keyframe(pf, tracked.pose, record.reference), None)
-        done = time.monotonic()
-        log.debug("tracker: frame %d tracked in %.2f s (%d threads)", item.index, done - start, torch.get_num_threads())
-        with board.timed(Counter.TRACK_REPORT_S):
-            self.ch.to_parent.put(TrackedFrame(self.epoch, record, keyframe, done - item.arrival, done))
+        self._report(record, keyframe, item.arrival, start)
+        if tracked is not None and tracked.keyframe:  # after the pose is out: it need not wait for the keyframe
+            with board.timed(Counter.TRACK_KEYFRAME_S):
+                self.frontend.remember(record.reference, pf, tracked.pose)
+                self._hand_over(new_keyframe(pf, tracked.pose, record.reference), None)
         self.tracked += 1
         board.add(Counter.TRACKED)
         board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
         board.set(Counter.TRACKER_DEVICE_PEAK_MB, device_peak_mb(self.replica.device))
+
+    def _report(self, record, keyframe: bool, arrival: float, start: float) -> None:
+        done = time.monotonic()
+        log.debug("tracker: frame %d tracked in %.2f s (%d threads)", record.index, done - start,
+                  torch.get_num_threads())
+        with self.ch.board.timed(Counter.TRACK_REPORT_S):
+            self.ch.to_parent.put(TrackedFrame(self.epoch, record, keyframe, done - arrival, done))
 
     def _hand_over(self, kf: Keyframe, extent: Optional[np.ndarray]) -> None:
         """Send a new keyframe to the mapper; keep only the newest one's images here."""
@@ -778,4 +783,8 @@ class MapperWorker:
 
 
 def mapper_main(setup: WorkerSetup, channels: Channels, errors) -> None:
-    run_worker("mapper", lambda: MapperWorker(setup, channels).run(), setup, errors)
+    def body():
+        lower_priority(setup.cfg.runtime.mapper_nice)
+        MapperWorker(setup, channels).run()
+
+    run_worker("mapper", body, setup, errors)

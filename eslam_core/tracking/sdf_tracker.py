@@ -54,9 +54,14 @@ def huber_cost(r: torch.Tensor) -> torch.Tensor:
     return torch.where(a <= 1.0, 0.5 * a**2, a - 0.5)
 
 
-def field_residuals(field: RadianceField, x: torch.Tensor, truncation: float, with_color: bool
-                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-    """Signed distance T * phi_g(x) (metres) and grey level g(phi_a(x)), each with its gradient in x."""
+def field_residuals(field: RadianceField, x: torch.Tensor, truncation: float, with_color: bool,
+                    gradients: bool = True
+                    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
+    """Signed distance T * phi_g(x) (metres) and grey level g(phi_a(x)), each with its gradient in x (None without
+    `gradients`)."""
+    if not gradients:
+        with torch.no_grad():
+            return field.sdf(x) * truncation, None, to_grey(field.color(x)) if with_color else None, None
     x = x.detach().requires_grad_(True)
     sdf = field.sdf(x) * truncation
     (sdf_grad,) = torch.autograd.grad(sdf.sum(), x)
@@ -144,7 +149,12 @@ class SDFTracker:
         fixed = FrozenField(field)  # the map does not change while tracking
         for it in range(tc.iterations + 1):  # the last pass only scores the final pose
             x = p_cam @ R.T + t
-            sdf, sdf_grad, grey, grey_grad = field_residuals(fixed, x.float(), T, lam > 0)
+            last = it == tc.iterations
+            sdf, sdf_grad, grey, grey_grad = field_residuals(fixed, x.float(), T, lam > 0, gradients=not last)
+            level = pyramid_level(it, tc.iterations, len(ref.levels)) if ref is not None and not last else 0
+            # Poses of the coarse image levels are not candidates for the best one (saves the full-resolution
+            # photometric residuals there): the first (the prediction), the fine ones and the final one are.
+            scored = it == 0 or level == 0
             if used is None:
                 used = observed.contains(x.float()) if observed is not None else \
                     torch.ones(len(x), dtype=torch.bool, device=device)
@@ -157,7 +167,7 @@ class SDFTracker:
                 r_col = (grey - grey_pixel) / tc.color_huber
                 cost = cost + lam * torch.where(band, huber_cost(r_col), SATURATED_COST)
             cost = float(cost[used].mean())
-            if ref is not None:
+            if ref is not None and scored:
                 r_ph, g_ph, ok = photometric_residuals(x, grey_current[0], ref, 0, self.intr, T)
                 if photo_used is None:
                     photo_used = ok
@@ -165,10 +175,10 @@ class SDFTracker:
                     r_ph = r_ph / tc.photometric_huber
                     photo_cost = torch.where(ok, huber_cost(r_ph), SATURATED_COST)
                     cost += tc.photometric_weight * float(photo_cost[photo_used].mean())
-            if cost < best_cost:
+            if scored and cost < best_cost:
                 best_cost, inliers = cost, float(band.sum()) / max(float(used.sum()), 1.0)
                 best_Rt = R, t
-            if it == tc.iterations or band.sum() < 30:
+            if last or band.sum() < 30:
                 break
             xs, rs, gs, ws = [x[band]], [r_geo[band]], [sdf_grad[band].double() / tc.huber], \
                 [huber_weights(r_geo[band])]
@@ -179,7 +189,6 @@ class SDFTracker:
                 gs.append(grey_grad[band].double() / tc.color_huber)
                 ws.append(lam * huber_weights(rc))
             if ref is not None and photo_used.any():
-                level = pyramid_level(it, tc.iterations, len(ref.levels))
                 if level > 0:
                     r_ph, g_ph, ok = photometric_residuals(x, grey_current[level], ref, level, self.intr, T)
                     r_ph = r_ph / tc.photometric_huber
