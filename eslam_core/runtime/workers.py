@@ -497,8 +497,9 @@ class TrackerWorker:
             extent = initial_extent(self.cfg, pf, self.intr, pose0)
             self.replica.start(extent)
             record = self.trajectory.record(pf.index, pf.timestamp, pose0, 0.0, pf.gt_pose, keyframe=True)
-            self.frontend.remember(0, pf, pose0)
-            self._hand_over(new_keyframe(pf, torch.from_numpy(pose0).float(), 0), extent)
+            kf = new_keyframe(pf, torch.from_numpy(pose0).float(), 0)
+            self.frontend.remember(kf, pf)
+            self._hand_over(kf, extent)
         else:
             with board.timed(Counter.TRACK_ALIGN_S):
                 tracked = self.frontend.track(pf, self.replica, self.trajectory)
@@ -509,8 +510,9 @@ class TrackerWorker:
         self._report(record, keyframe, item.arrival, start)
         if tracked is not None and tracked.keyframe:  # after the pose is out: it need not wait for the keyframe
             with board.timed(Counter.TRACK_KEYFRAME_S):
-                self.frontend.remember(record.reference, pf, tracked.pose)
-                self._hand_over(new_keyframe(pf, tracked.pose, record.reference), None)
+                kf = new_keyframe(pf, tracked.pose, record.reference)
+                self.frontend.remember(kf, pf)
+                self._hand_over(kf, None)
         self.tracked += 1
         board.add(Counter.TRACKED)
         board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())

@@ -29,7 +29,7 @@ import torch
 
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
-from eslam_core.frames import PreparedFrame
+from eslam_core.frames import PreparedFrame, rgb_uint8
 from eslam_core.geometry import orthonormalize
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSurfaces
@@ -88,10 +88,10 @@ class TrackingFrontEnd:
         if len(keyframes):  # the prior of a first frame that no keyframe explains: where the map ended
             self.fallback_pose = keyframes[-1].pose.double().numpy()
 
-    def remember(self, number: int, pf: PreparedFrame, pose) -> None:
-        """A new keyframe, for relocalization."""
+    def remember(self, kf: Keyframe, pf: PreparedFrame) -> None:
+        """A new keyframe (made of `pf`), for relocalization."""
         if self.places is not None:
-            self.places.add(number, rgb8(pf), pf.depth.numpy(), pose, self.intr)
+            self.places.add(kf.number, kf.rgb.numpy(), pf.depth.numpy(), kf.pose, self.intr)
 
     def forget(self, numbers) -> None:
         """Keyframes the map's store dropped (as redundant or over its budget) are not relocalized against: the
@@ -157,7 +157,7 @@ class TrackingFrontEnd:
         if self.lost and self.places is not None:
             self._index_loaded_keyframes()
         if self.lost and self.places is not None and len(self.places):
-            found = self.places.relocalize(rgb8(pf), pf.depth.numpy(), self.intr)
+            found = self.places.relocalize(rgb_uint8(pf.rgb).numpy(), pf.depth.numpy(), self.intr)
             if found is not None:
                 init = torch.from_numpy(orthonormalize(found.pose)).float()
         # (The extent test uses the starting pose: a few centimetres off at most, and it saves a second pass.)
@@ -210,6 +210,3 @@ class TrackingFrontEnd:
                 self.since_keyframe = 0
         return TrackedPose(pose, init, loss, keyframe, quality, self.lost, relocalized_from)
 
-
-def rgb8(pf: PreparedFrame) -> np.ndarray:
-    return (pf.rgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()
