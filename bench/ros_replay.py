@@ -229,7 +229,9 @@ def main() -> int:
         "pose_rate_hz": (len(pose_times) - 1) / (pose_times[-1] - pose_times[0]) if len(pose_times) > 2 else 0.0,
         "warm_up_s": warm_up_s,
         "frames_without_pose": len(ds) - len(stamps),  # the lead-in frame has one
+        "latency_s_by_stamp": {s: t - listener.images[s] for s, (t, _) in stream.items() if s in listener.images},
         "latency_ms": {"median": float(np.median(latency) * 1000), "p90": float(np.percentile(latency, 90) * 1000),
+                       "p99": float(np.percentile(latency, 99) * 1000),
                        "max": float(latency.max() * 1000), "mean": float(latency.mean() * 1000)}
         if len(latency) else None,
         "ate_rmse_cm_of_published_poses": ate_cm, "cpu_percent_during_play": cpu_share, "node_status": status, "load_before": load_before,
@@ -242,7 +244,8 @@ def main() -> int:
           f"{results['frames_without_pose']} (runtime dropped: {status.get('frames_dropped', '?')})")
     if results["latency_ms"]:
         lat = results["latency_ms"]
-        print(f"latency image -> pose: median {lat['median']:.0f} ms, p90 {lat['p90']:.0f} ms, max {lat['max']:.0f} ms")
+        print(f"latency image -> pose: median {lat['median']:.0f} ms, p90 {lat['p90']:.0f} ms, p99 {lat['p99']:.0f} ms, "
+              f"max {lat['max']:.0f} ms")
     if ate_cm is not None:
         print(f"ATE RMSE of the published (as-tracked) poses: {ate_cm:.2f} cm over {len(known)} poses")
     print("CPU during the stream (% of one core): " + ", ".join(f"{name} {share:.0f}"

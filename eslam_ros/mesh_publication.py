@@ -31,8 +31,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
 from eslam_core.outputs.mesh import EmptyMeshError
-from eslam_core.outputs.mesh_worker import (BackgroundMesher, MesherCrashed, MeshSnapshot, MeshUpdate,
-                                            snapshot_for_meshing)
+from eslam_core.outputs.mesh_worker import BackgroundMesher, MesherCrashed, MeshSnapshot, MeshUpdate
 from eslam_ros.mesh_markers import TriangleBlock, serialize_block_markers
 
 # Seconds between two looks at the mesh process (its results, new subscribers, the next job).
@@ -109,8 +108,8 @@ class MeshPublication:
     # ------------------------------------------------------------------------------------------ the tick
 
     def tick(self, runtime: Any) -> None:
-        """One look at the mesh process, for a SLAM runtime (its map version and `snapshot()`)."""
-        self.step(runtime.health().map_version, lambda have: snapshot_for_meshing(runtime.snapshot(), have))
+        """One look at the mesh process, for a SLAM runtime (its map version and `mesh_snapshot()`)."""
+        self.step(runtime.health().map_version, runtime.mesh_snapshot)
 
     def step(self, map_version: Any, take_snapshot: Callable[[set], MeshSnapshot]) -> None:
         """Publish the mesh process's update if one is ready, every block if a subscriber is new, and start the

@@ -188,19 +188,19 @@ class MapView:
         return layout.observed_boxes(points, 2 * self.truncation)
 
 
-def map_view(slam, skip_depths: Container = ()) -> MapView:
-    """The MapView of a SLAM state (e.g. a runtime's `snapshot()`): the field in eval mode, the keyframes' poses and
-    depth images at the frame's resolution (None for the ids in `skip_depths`). A keyframe's id is (number,
-    stride): a keyframe the store reduced has another depth image, so it counts as a new keyframe."""
-    scene = slam.map
+def map_view(scene, skip_depths: Container = ()) -> MapView:
+    """The MapView of a scene map (`SLAM.map`, a runtime's snapshot's, or the mapping process's own): the field in
+    eval mode, the keyframes' poses and depth images at the frame's resolution (None for the ids in
+    `skip_depths`). A keyframe's id is (number, stride): a keyframe the store reduced has another depth image, so it
+    counts as a new keyframe."""
     if scene.field is None:
         raise EmptyMeshError("the map is empty: no frame has been processed")
     field_ = scene.field.eval()
-    keyframes, (h, w) = list(scene.keyframes), (slam.intr.height, slam.intr.width)
+    keyframes, (h, w) = list(scene.keyframes), (scene.intr.height, scene.intr.width)
     ids = [(int(kf.number), int(kf.stride)) for kf in keyframes]
     return MapView(
         sdf=field_.sdf, color=field_.color, bound=np.asarray(scene.extent, dtype=np.float64),
-        truncation=float(slam.cfg.model.truncation), intrinsics=slam.intr, keyframe_ids=ids,
+        truncation=float(scene.cfg.model.truncation), intrinsics=scene.intr, keyframe_ids=ids,
         poses=np.stack([kf.pose.double().numpy() for kf in keyframes]) if keyframes else np.zeros((0, 4, 4)),
         depths=[None if i in skip_depths else kf.frame_depth_image(h, w).numpy() for i, kf in zip(ids, keyframes)],
     )

@@ -81,11 +81,12 @@ class MeshUpdate:
     error: str = ""  # the traceback of a job that failed (the process goes on)
 
 
-def snapshot_for_meshing(slam, have: set) -> MeshSnapshot:
-    """A SLAM state (a runtime's `snapshot()`) as a MeshSnapshot; `have`: keyframe ids whose depth was sent."""
-    view = map_view(slam, skip_depths=have)
+def snapshot_for_meshing(scene, have: set) -> MeshSnapshot:
+    """A scene map (`SLAM.map`; in the runtime the mapping process's, see `mesh_snapshot`) as a MeshSnapshot;
+    `have`: keyframe ids whose depth was sent."""
+    view = map_view(scene, skip_depths=have)
     buffer = io.BytesIO()
-    torch.save(slam.map.field, buffer)
+    torch.save(scene.field, buffer)
     return MeshSnapshot(buffer.getvalue(), view.bound, view.truncation, view.intrinsics, list(view.keyframe_ids),
                         view.poses, {k: d for k, d in zip(view.keyframe_ids, view.depths) if d is not None})
 

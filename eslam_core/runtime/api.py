@@ -108,6 +108,11 @@ class SLAMRuntime(Protocol):
 
     def health(self) -> Health: ...
 
+    def mesh_snapshot(self, have: set):
+        """What the mesh process needs of the current map (outputs/mesh_worker.py: MeshSnapshot): the field, the
+        keyframe poses and the depth images of the keyframes whose ids are not in `have`. Much lighter than
+        `snapshot()` (no keyframe images, no trajectory); raises EmptyMeshError before the first keyframe."""
+
     def save_checkpoint(self, path) -> Path: ...
 
     def save_mesh(self, path, resolution: float | None = None) -> Path: ...

@@ -166,6 +166,14 @@ class InProcessRuntime(SavingMixin):
             # Tensors are shared with the live state, which replaces (never modifies) them; the field is copied.
             return SLAM.from_state_dict(self.slam.state_dict())
 
+    def mesh_snapshot(self, have: set):
+        from eslam_core.outputs.mesh_worker import snapshot_for_meshing
+
+        if self._closed or not self._started:
+            return snapshot_for_meshing(self.slam.map, have)
+        with self._slam_lock:
+            return snapshot_for_meshing(self.slam.map, have)
+
     def reset(self) -> None:
         self._check_running()
         with self._cond:

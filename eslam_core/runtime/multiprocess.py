@@ -54,7 +54,7 @@ from eslam_core.runtime.saving import SavingMixin
 from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, \
     check_frame, check_policy, peak_rss_mb
 from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta, stage_profile
-from eslam_core.runtime.workers import EXIT_ORPHANED, STOP_SIGNALS, Channels, MapperFinished, MapperSnapshot, MappingReport, SnapshotRequest, \
+from eslam_core.runtime.workers import EXIT_ORPHANED, STOP_SIGNALS, Channels, MapperFinished, MapperSnapshot, MappingReport, MeshRequest, SnapshotRequest, \
     TrackedFrame, TrackerFinished, WorkerReady, WorkerSetup, mapper_main, tracker_main
 
 log = logging.getLogger("eslam")
@@ -482,6 +482,25 @@ class MultiProcessRuntime(SavingMixin):
             slam.map.load_state_dict(torch.load(io.BytesIO(state), weights_only=True))
             slam.trajectory = TrackedTrajectory.from_state_dict(trajectory)
         return slam
+
+    def mesh_snapshot(self, have: set):
+        from eslam_core.outputs.mesh import EmptyMeshError
+        from eslam_core.outputs.mesh_worker import snapshot_for_meshing
+
+        if self._final is not None:
+            return snapshot_for_meshing(self._final.map, have)
+        self._check_running()
+        with self._lock:
+            epoch, request_id = self._epoch, next(self._request_ids)
+        self._queues["commands"].put(MeshRequest(request_id, epoch, set(have)))
+        if not self._wait(lambda: request_id in self._snapshots, SNAPSHOT_TIMEOUT_S, "the map for a mesh"):
+            raise RuntimeCrashed("mapper", f"the mapper did not answer a mesh request within "
+                                           f"{SNAPSHOT_TIMEOUT_S:.0f} s")
+        with self._lock:
+            snapshot = self._snapshots.pop(request_id).state
+        if snapshot is None:
+            raise EmptyMeshError("the map is empty: no keyframe has been mapped yet")
+        return snapshot
 
     def reset(self) -> None:
         self._check_running()

@@ -164,11 +164,19 @@ class SnapshotRequest:  # parent -> mapper
 
 
 @dataclass
+class MeshRequest:  # parent -> mapper
+    request_id: int
+    epoch: int
+    have: set  # keyframe ids whose depth images the mesh process has
+
+
+@dataclass
 class MapperSnapshot:  # mapper -> parent
     request_id: int
     epoch: int
-    # SceneMap.state_dict() as torch.save bytes (one copy, no tensor handles to share); None before keyframe 0
-    state: Optional[bytes]
+    # SceneMap.state_dict() as torch.save bytes (one copy, no tensor handles to share), or the MeshSnapshot of a
+    # MeshRequest; None before keyframe 0
+    state: Any
 
 
 # ------------------------------------------------------------------------------------------------- set-up, faults
@@ -751,8 +759,18 @@ class MapperWorker:
     def _serve_requests(self) -> None:
         req = _get(self.ch.commands, 0.0)
         while req is not None:
-            self.ch.to_parent.put(MapperSnapshot(req.request_id, self.epoch, self._snapshot(req)))
+            answer = self._mesh_snapshot(req) if isinstance(req, MeshRequest) else self._snapshot(req)
+            self.ch.to_parent.put(MapperSnapshot(req.request_id, self.epoch, answer))
             req = _get(self.ch.commands, 0.0)
+
+    def _mesh_snapshot(self, req: MeshRequest):
+        """The map for the mesh process, made here: the parent only passes it on (a whole `_snapshot` of the
+        state took the node 1-3 s per mesh on 2 cores, and stalled its poses)."""
+        from eslam_core.outputs.mesh_worker import snapshot_for_meshing
+
+        if req.epoch != self.epoch or self.scene is None:
+            return None
+        return snapshot_for_meshing(self.scene, req.have)
 
     def _snapshot(self, req: SnapshotRequest) -> Optional[bytes]:
         """The scene map (field, keyframes, window sampler): what a `SLAM` checkpoint needs besides the
