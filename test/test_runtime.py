@@ -403,6 +403,42 @@ def test_live_policy_in_process_and_reset(room_sequence):
     assert rt.trajectory()[0].min() >= room_sequence[10].timestamp  # only frames after the reset
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_poll_waits_for_the_next_pose_and_mesh_snapshots_are_light(room_sequence, workers):
+    """poll(timeout) returns as soon as a pose is made (a publisher thread needs no polling loop), and returns
+    empty-handed after the timeout when none comes; mesh_snapshot carries the field, every keyframe's pose and the
+    depth images of only the keyframes the mesh process lacks."""
+    rt = make_runtime(fast_cfg(mapping={"first_iterations": 5}), room_sequence.intrinsics, workers=workers,
+                      policy="offline", threads=1)
+    with rt:
+        rt.submit(room_sequence[0])
+        updates = rt.poll(timeout=120.0)
+        assert [u.index for u in updates] == [0]
+        start = time.monotonic()
+        assert rt.poll(timeout=0.3) == [] and 0.25 < time.monotonic() - start < 5.0
+        for i in range(1, 6):
+            rt.submit(room_sequence[i])
+        got = []
+        while len(got) < 5:
+            more = rt.poll(timeout=120.0)
+            assert more, "no pose within the timeout"
+            got += [u.index for u in more]
+        assert got == [1, 2, 3, 4, 5]
+        assert wait_until(lambda: rt.health().keyframe_queue_depth == 0, 120)
+        first = rt.mesh_snapshot(set())
+        kept = list(rt.snapshot().map.keyframes)
+        assert [k for k, _ in first.keyframe_ids] == [kf.number for kf in kept] and len(kept) >= 1
+        assert set(first.new_depths) == set(first.keyframe_ids)
+        assert np.allclose(first.poses, np.stack([kf.pose.double().numpy() for kf in kept]), atol=1e-5)
+        assert all(d.shape == (room_sequence.intrinsics.height, room_sequence.intrinsics.width)
+                   for d in first.new_depths.values())
+        again = rt.mesh_snapshot(set(first.keyframe_ids))
+        assert again.keyframe_ids == first.keyframe_ids and again.new_depths == {}
+        field = torch.load(__import__("io").BytesIO(again.field), weights_only=False)
+        points = torch.tensor([[0.0, 0.0, 1.0]])
+        assert torch.allclose(field.sdf(points), rt.snapshot().map.field.sdf(points), atol=1e-4)
+
+
 # ------------------------------------------------------------------------------------- set-up errors, building blocks
 
 def test_clear_errors(room_sequence):

@@ -402,8 +402,9 @@ class MultiProcessRuntime(SavingMixin):
         if self._started and not self._closed:
             self._raise_if_crashed()
             self._pump()
-            if timeout > 0 and not self._updates:
-                self._pump(block_s=timeout)
+            deadline = time.monotonic() + timeout
+            while not self._updates and time.monotonic() < deadline:  # (other messages may come first)
+                self._pump(block_s=min(deadline - time.monotonic(), 0.05))
                 self._raise_if_crashed()
         with self._lock:
             out, self._updates = self._updates, []
