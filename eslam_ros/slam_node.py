@@ -7,7 +7,7 @@ Data flow
                                                       +-- latest rgb/camera_info (cached, not paired)
     runtime.poll()        -> ~/pose, ~/odom, TF      (a thread of its own: each pose as soon as it is made)
     runtime.trajectory()  -> ~/path                  (refined keyframe poses included, every path_period)
-    runtime.snapshot()    -> ~/mesh                  (blocks that changed, meshed at nice 19: mesh_publication.py)
+    runtime.mesh_snapshot() -> ~/mesh                (blocks that changed, meshed at nice 19: mesh_publication.py)
     runtime.health()      -> ~/status                (diagnostic_msgs/DiagnosticArray, every status_period)
     services ~/save_mesh, ~/save_trajectory, ~/save_checkpoint, ~/reset (std_srvs/Trigger)
 
@@ -535,7 +535,8 @@ class SlamNode(Node):
         self._odometry_problems_at_last_status: dict[str, int] = {}
         self._poses_at_last_status = (0, time.monotonic())
 
-        # Inputs, poses and path in one group (in order); slow work (mesh, services), odometry and status in their own.
+        # Inputs and path in one group (in order); services, odometry and status in their own (these matter where the
+        # node runs on a MultiThreadedExecutor; poses and mesh have threads of their own).
         self._io = MutuallyExclusiveCallbackGroup()
         self._slow = MutuallyExclusiveCallbackGroup()
         # rclpy's executor serves one exclusive group's ready entities timers first, then subscriptions, in creation

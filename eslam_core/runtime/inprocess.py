@@ -169,9 +169,7 @@ class InProcessRuntime(SavingMixin):
     def mesh_snapshot(self, have: set):
         from eslam_core.outputs.mesh_worker import snapshot_for_meshing
 
-        if self._closed or not self._started:
-            return snapshot_for_meshing(self.slam.map, have)
-        with self._slam_lock:
+        with self._slam_lock:  # (held for a whole step: the map between two steps)
             return snapshot_for_meshing(self.slam.map, have)
 
     def reset(self) -> None:

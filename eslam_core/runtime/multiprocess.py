@@ -471,18 +471,23 @@ class MultiProcessRuntime(SavingMixin):
             # (in localization every frame anchors the trajectory, and no keyframe goes to the mapper)
             keyframes = self._mirror.keyframes if self.cfg.run.mode == "slam" else 0
             trajectory, epoch = self._mirror.state_dict(), self._epoch
-            request_id = next(self._request_ids)
-        self._queues["commands"].put(SnapshotRequest(request_id, epoch, keyframes))
-        if not self._wait(lambda: request_id in self._snapshots, SNAPSHOT_TIMEOUT_S, "a snapshot of the map"):
-            raise RuntimeCrashed("mapper", f"the mapper did not answer a snapshot request within "
-                                           f"{SNAPSHOT_TIMEOUT_S:.0f} s")
-        with self._lock:
-            state = self._snapshots.pop(request_id).state
+        state = self._ask_mapper(lambda request_id: SnapshotRequest(request_id, epoch, keyframes),
+                                 "a snapshot of the map")
         slam = SLAM(self.cfg, self.intrinsics)
         if state is not None:  # else reset meanwhile, or nothing tracked yet
             slam.map.load_state_dict(torch.load(io.BytesIO(state), weights_only=True))
             slam.trajectory = TrackedTrajectory.from_state_dict(trajectory)
         return slam
+
+    def _ask_mapper(self, request: Callable[[int], object], what: str):
+        """Send the mapper `request(request_id)` and wait for its answer (`MapperSnapshot.state`)."""
+        with self._lock:
+            request_id = next(self._request_ids)
+        self._queues["commands"].put(request(request_id))
+        if not self._wait(lambda: request_id in self._snapshots, SNAPSHOT_TIMEOUT_S, what):
+            raise RuntimeCrashed("mapper", f"the mapper did not send {what} within {SNAPSHOT_TIMEOUT_S:.0f} s")
+        with self._lock:
+            return self._snapshots.pop(request_id).state
 
     def mesh_snapshot(self, have: set):
         from eslam_core.outputs.mesh import EmptyMeshError
@@ -491,14 +496,8 @@ class MultiProcessRuntime(SavingMixin):
         if self._final is not None:
             return snapshot_for_meshing(self._final.map, have)
         self._check_running()
-        with self._lock:
-            epoch, request_id = self._epoch, next(self._request_ids)
-        self._queues["commands"].put(MeshRequest(request_id, epoch, set(have)))
-        if not self._wait(lambda: request_id in self._snapshots, SNAPSHOT_TIMEOUT_S, "the map for a mesh"):
-            raise RuntimeCrashed("mapper", f"the mapper did not answer a mesh request within "
-                                           f"{SNAPSHOT_TIMEOUT_S:.0f} s")
-        with self._lock:
-            snapshot = self._snapshots.pop(request_id).state
+        epoch = self._epoch
+        snapshot = self._ask_mapper(lambda request_id: MeshRequest(request_id, epoch, set(have)), "the map for a mesh")
         if snapshot is None:
             raise EmptyMeshError("the map is empty: no keyframe has been mapped yet")
         return snapshot
