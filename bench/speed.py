@@ -104,13 +104,13 @@ def iteration_benchmark(cfg, ds, repeats: int, native: bool) -> dict:
     cfg.mapping.first_iterations, keep = 30, cfg.mapping.first_iterations
     slam.step(ds[0])
     cfg.mapping.first_iterations = keep
-    field = slam.field
+    field = slam.map.field
     for planes in (field.geometry_planes, field.appearance_planes):
         planes.use_native = native
     intr = working_intrinsics(ds.intrinsics, cfg.camera)
     dirs_cam = pixel_directions_table(intr)
     frame = prepare_frame(ds[min(4, len(ds) - 1)], ds.intrinsics, cfg.camera)
-    pose = torch.from_numpy(slam.pose(0)).float()
+    pose = torch.from_numpy(slam.trajectory.pose(0)).float()
 
     # Tracking: pose parameters only, against the tracker's snapshot of the map. Folding the decoders' first layer
     # into the planes happens once per frame: its cost, spread over the frame's iterations, counts as lookup.
@@ -138,7 +138,7 @@ def iteration_benchmark(cfg, ds, repeats: int, native: bool) -> dict:
         tracker = make_tracker(cfg, dirs_cam, intr)
         for _ in range(repeats + 1):
             t0 = time.perf_counter()
-            tracker.track(field, frame, pose, observed=slam.observed, keyframe=slam.keyframes[-1])
+            tracker.track(field, frame, pose, observed=slam.map.observed, keyframe=slam.map.newest_keyframe())
             track_frame.append(time.perf_counter() - t0)
 
     # Mapping: planes, decoders and poses of a window of keyframes spread over the sequence (rays from different

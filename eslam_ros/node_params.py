@@ -87,8 +87,8 @@ class NodeSettings:
                                                              "marker per block, re-sent only when its surface changed")
     mesh_time_budget: float = _param(0.5, "mesh_time_budget", "seconds of meshing per ~/mesh message: a large map is "
                                                               "meshed in pieces, changed blocks first")
-    mesh_nice: int = _param(19, "mesh_nice", "nice value (0-19) of the mesh process: 19 = only CPU time that tracking "
-                                             "and mapping leave")
+    mesh_nice: int = _param(19, "mesh_nice", "nice value (0-19) of the mesh process: 19 = Linux's SCHED_IDLE, only CPU "
+                                             "time that no other process wants")
     path_period: float = _param(1.0, "path_period", "seconds between ~/path publications")
     status_period: float = _param(1.0, "status_period", "seconds between ~/status publications")
     publish_tf: bool = _param(True, "publish_tf", "broadcast map_frame -> camera frame on /tf (when tf2_ros is "

@@ -364,8 +364,8 @@ def test_mapper_keeps_messages_of_a_reset_it_has_not_caught_up_with(monkeypatch)
     (keyframe 0 of the new epoch) while the mapper, idle in its queue read, is still in the old epoch. That message
     must wait for the mapper to catch up, not be dropped."""
     monkeypatch.setattr(workers, "register_optimizer_step_post_hook", lambda hook: None)  # no global hook here
-    ch = workers.Channels(None, queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), HealthBoard(), Control(),
-                          None)
+    ch = workers.Channels(None, queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), HealthBoard(),
+                          Control(), None)
     setup = workers.WorkerSetup(load_config("demo"), Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0), "live", 1, os.getpid(),
                                 logging.INFO)
     mapper = workers.MapperWorker(setup, ch)
@@ -575,8 +575,8 @@ def test_mapper_catches_up_only_when_a_newer_keyframe_waits(monkeypatch):
     and the step has had its share of the budget (divided among the waiting keyframes, so that a mapper that fell
     behind by several keyframes catches up)."""
     monkeypatch.setattr(workers, "register_optimizer_step_post_hook", lambda hook: None)
-    ch = workers.Channels(None, queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), HealthBoard(), Control(),
-                          None)
+    ch = workers.Channels(None, queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), HealthBoard(),
+                          Control(), None)
     setup = workers.WorkerSetup(load_config("demo"), Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0), "offline", 1, os.getpid(),
                                 logging.INFO, catch_up_iterations=4)
     mapper = workers.MapperWorker(setup, ch)

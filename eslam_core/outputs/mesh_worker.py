@@ -3,8 +3,8 @@ from tracking and mapping.
 
 Why a process: a thread would share the caller's interpreter lock, and a low-priority thread that holds it while
 the CPU is busy stalls the caller's other threads (the node's pose publication) until it is scheduled again; the
-scheduler also cannot tell such a thread from the caller. A process at nice 19 gets only the CPU time that
-tracking and mapping leave (about 1.5 % of a core while both are busy), and nothing of the caller's.
+scheduler also cannot tell such a thread from the caller. A process at nice 19 (and Linux's SCHED_IDLE, see
+cpu.lower_priority) gets only the CPU time that tracking and mapping leave, and nothing of the caller's.
 
 Protocol (one job at a time; the caller waits for a job's `MeshUpdate` before it submits the next):
     caller                                   mesh process

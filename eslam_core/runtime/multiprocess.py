@@ -149,6 +149,7 @@ class MultiProcessRuntime(SavingMixin):
         # One thread at a time takes the workers' messages (in order); the wait for the first one holds only this
         # lock, so that a thread waiting for poses (poll with a timeout) does not hold up readers of the state.
         self._reading = threading.Lock()
+        self._answering = threading.Lock()
         self._submit_lock = threading.Lock()  # the frame ring has a single writer
         self._crash: Optional[RuntimeCrashed] = None
         self._expected_exit = False
@@ -170,7 +171,7 @@ class MultiProcessRuntime(SavingMixin):
         self._mapping_rate = RateMeter()
         self._latency = LatencyMeter()
         self._tracker_finished = self._mapper_finished = False
-        self._snapshots: dict[int, MapperSnapshot] = {}
+        self._snapshots: dict[int, MapperSnapshot] = {}  # answers taken from the queue, by request id
 
     # ----------------------------------------------------------------------------------------------- start-up
     def start(self) -> None:
@@ -183,10 +184,10 @@ class MultiProcessRuntime(SavingMixin):
         self._board = HealthBoard()
         self._control = Control()
         self._map_meta = MapMeta(ctx)
-        self._queues = {name: ctx.Queue() for name in ("to_mapper", "to_tracker", "to_parent", "commands")}
-        self._channels = Channels(self._ring, self._queues["to_mapper"], self._queues["to_tracker"],
-                                  self._queues["to_parent"], self._queues["commands"], self._board, self._control,
-                                  self._map_meta)
+        self._queues = {name: ctx.Queue() for name in ("to_mapper", "to_tracker", "to_parent", "commands", "answers")}
+        q = self._queues
+        self._channels = Channels(self._ring, q["to_mapper"], q["to_tracker"], q["to_parent"], q["commands"],
+                                  q["answers"], self._board, self._control, self._map_meta)
         self._semaphores = semaphore_names(self._ring.cond, self._map_meta.lock, *self._queues.values())
         setup = WorkerSetup(self.cfg, self.intrinsics, self.policy, self.threads, os.getpid(),
                             logging.getLogger("eslam").getEffectiveLevel(), self.publish_every,
@@ -361,8 +362,6 @@ class MultiProcessRuntime(SavingMixin):
             self._tracker_finished = True
         elif isinstance(msg, MapperFinished):
             self._mapper_finished = True
-        elif isinstance(msg, MapperSnapshot):
-            self._snapshots[msg.request_id] = msg
 
     def _wait(self, done: Callable[[], bool], timeout: Optional[float], what: str) -> bool:
         """Pump messages until `done()`; raises RuntimeCrashed if a worker dies meanwhile, returns False when
@@ -484,10 +483,20 @@ class MultiProcessRuntime(SavingMixin):
         with self._lock:
             request_id = next(self._request_ids)
         self._queues["commands"].put(request(request_id))
-        if not self._wait(lambda: request_id in self._snapshots, SNAPSHOT_TIMEOUT_S, what):
-            raise RuntimeCrashed("mapper", f"the mapper did not send {what} within {SNAPSHOT_TIMEOUT_S:.0f} s")
-        with self._lock:
-            return self._snapshots.pop(request_id).state
+        deadline = time.monotonic() + SNAPSHOT_TIMEOUT_S
+        while True:
+            self._raise_if_crashed()
+            with self._answering:  # answers to several asking threads: each takes its own from the dict
+                if request_id in self._snapshots:
+                    return self._snapshots.pop(request_id).state
+                try:
+                    msg = self._queues["answers"].get(timeout=0.05)
+                    if msg.epoch == self._epoch:  # (an answer from before a reset is dropped)
+                        self._snapshots[msg.request_id] = msg
+                except queue.Empty:
+                    pass
+            if time.monotonic() > deadline:
+                raise RuntimeCrashed("mapper", f"the mapper did not send {what} within {SNAPSHOT_TIMEOUT_S:.0f} s")
 
     def mesh_snapshot(self, have: set):
         from eslam_core.outputs.mesh import EmptyMeshError

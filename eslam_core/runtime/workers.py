@@ -207,8 +207,11 @@ class Channels:
     ring: FrameRing
     to_mapper: Any  # queue: KeyframeMessage, TrackerFinished
     to_tracker: Any  # queue: MapAttach, RefinedPoses
-    to_parent: Any  # queue: WorkerReady, TrackedFrame, MappingReport, ..., MapperSnapshot
-    commands: Any  # queue, parent -> mapper: SnapshotRequest
+    to_parent: Any  # queue: WorkerReady, TrackedFrame, MappingReport, ...
+    commands: Any  # queue, parent -> mapper: SnapshotRequest, MeshRequest
+    # queue, mapper -> parent: MapperSnapshot. Not to_parent: a queue is one pipe behind one write lock, and the
+    # tracker's poses waited behind a map of megabytes written by a niced mapper (stalls of 0.5-0.7 s per mesh).
+    answers: Any
     board: HealthBoard
     control: Control
     map_meta: MapMeta
@@ -760,7 +763,7 @@ class MapperWorker:
         req = _get(self.ch.commands, 0.0)
         while req is not None:
             answer = self._mesh_snapshot(req) if isinstance(req, MeshRequest) else self._snapshot(req)
-            self.ch.to_parent.put(MapperSnapshot(req.request_id, self.epoch, answer))
+            self.ch.answers.put(MapperSnapshot(req.request_id, self.epoch, answer))
             req = _get(self.ch.commands, 0.0)
 
     def _mesh_snapshot(self, req: MeshRequest):
