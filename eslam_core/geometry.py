@@ -148,15 +148,13 @@ def rotation_angle_deg(R: np.ndarray) -> float:
 def orthonormalize(T):
     """The rigid transform nearest to a 4x4 pose whose rotation drifted from orthonormal (float rounding over many
     composed updates, float32 optimiser output): the rotation's polar factor by SVD, the translation kept.
-    numpy or torch in, the same out."""
+    numpy or torch in, the same out; (..., 4, 4) for many poses."""
     if isinstance(T, torch.Tensor):
         return torch.from_numpy(orthonormalize(T.detach().double().numpy())).to(T.dtype)
     T = np.array(T, dtype=np.float64)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:  # a reflection is not a rotation: flip the weakest axis
-        U[:, -1] *= -1
-        R = U @ Vt
-    T[:3, :3] = R
-    T[3] = (0.0, 0.0, 0.0, 1.0)
+    U, _, Vt = np.linalg.svd(T[..., :3, :3])
+    reflection = np.linalg.det(U @ Vt) < 0  # a reflection is not a rotation: flip the weakest axis
+    U[..., :, -1] *= np.where(reflection, -1.0, 1.0)[..., None]
+    T[..., :3, :3] = U @ Vt
+    T[..., 3, :] = (0.0, 0.0, 0.0, 1.0)
     return T

@@ -61,7 +61,7 @@ class SLAM:
             self.map.start(initial_extent(self.cfg, pf, self.intr, pose0))
             self.trajectory.record(pf.index, pf.timestamp, pose0, 0.0, pf.gt_pose, keyframe=True)
             kf = new_keyframe(pf, torch.from_numpy(pose0).float(), 0)
-            self.frontend.remember(kf, pf)
+            self.frontend.remember(kf)
             self.map.add_keyframe(kf)
             step = self.map.warm_up()
             return StepResult(pf.index, pose0, 0.0, True, step.loss, {}, 1.0, False, True)
@@ -76,7 +76,7 @@ class SLAM:
         if tracked.keyframe:
             number = self.trajectory.keyframes - 1
             kf = new_keyframe(pf, tracked.pose, number)
-            self.frontend.remember(kf, pf)
+            self.frontend.remember(kf)
             self.map.add_keyframe(kf)
             self.frontend.forget(self.map.keyframes.take_dropped())
             step = self.map.map_newest(self.stop_mapping_early)

@@ -30,6 +30,7 @@ from std_msgs.msg import Header
 
 from eslam_core.camera import Intrinsics
 from eslam_core.geometry import matrix_to_quaternion_xyzw, orthonormalize, quaternion_xyzw_to_matrix
+from eslam_ros.cdr import CdrWriter
 
 
 class UnsupportedImageError(ValueError):
@@ -319,6 +320,54 @@ quaternion_to_rotation = quaternion_xyzw_to_matrix
 _ROTATION_DRIFT_LIMIT = 1e-2
 
 
+def rigid_transforms(poses: np.ndarray) -> np.ndarray:
+    """(..., 4, 4) -> (...) bool: finite, a rotation within the drift limit of orthonormal, bottom row 0 0 0 1."""
+    t = np.asarray(poses, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        rotation = t[..., :3, :3]
+        error = np.abs(np.swapaxes(rotation, -1, -2) @ rotation - np.eye(3)).max(axis=(-2, -1))
+        bottom_error = np.abs(t[..., 3, :] - [0, 0, 0, 1]).max(axis=-1)
+        return (np.isfinite(t).all(axis=(-2, -1)) & (error <= _ROTATION_DRIFT_LIMIT)
+                & (bottom_error <= _ROTATION_DRIFT_LIMIT) & (np.linalg.det(np.nan_to_num(rotation)) > 0))
+
+
+def path_cdr(timestamps: np.ndarray, poses: np.ndarray, frame_id: str) -> bytes:
+    """nav_msgs/Path of (N,) stamps in seconds and (N, 4, 4) poses as CDR bytes, for Publisher.publish. A pose that
+    is not a rigid transform, or a stamp that is no ROS time, is left out; the others are re-orthonormalised. The
+    header's stamp is the last pose's."""
+    ts = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    with np.errstate(invalid="ignore"):
+        sec = np.floor(ts)
+        nanosec = np.round((ts - sec) * 1e9)
+        carry = nanosec >= 1e9  # rounding carried into the next second
+        sec, nanosec = sec + carry, np.where(carry, nanosec - 1e9, nanosec)
+        keep = rigid_transforms(poses) & np.isfinite(ts) & (sec >= -(2**31)) & (sec < 2**31)
+    poses, sec, nanosec = orthonormalize(poses[keep]), sec[keep], nanosec[keep]
+    pose7 = np.concatenate([poses[:, :3, 3], matrix_to_quaternion_xyzw(poses[:, :3, :3])], axis=1)
+    w = CdrWriter()
+    w.primitives("i", int(sec[-1]) if len(sec) else 0)
+    w.primitives("I", int(nanosec[-1]) if len(sec) else 0)
+    w.string(frame_id)
+    w.primitives("I", len(sec))
+    if len(sec):  # the first PoseStamped by hand: where it starts decides its padding; after it, every one is alike
+        w.primitives("i", int(sec[0]))
+        w.primitives("I", int(nanosec[0]))
+        w.string(frame_id)
+        w.primitives("d", *pose7[0])
+        name = frame_id.encode("utf-8") + b"\x00"
+        before_pose = 12 + len(name)  # sec, nanosec, string length, string (records start 8-aligned from here on)
+        pose_at = before_pose + (-before_pose % 8)
+        record = np.dtype({"names": ["sec", "nanosec", "length", "frame_id", "pose"],
+                           "formats": ["<i4", "<u4", "<u4", f"S{len(name)}", ("<f8", (7,))],
+                           "offsets": [0, 4, 8, 12, pose_at], "itemsize": pose_at + 56})
+        rest = np.zeros(len(sec) - 1, record)
+        rest["sec"], rest["nanosec"], rest["length"] = sec[1:], nanosec[1:], len(name)
+        rest["frame_id"], rest["pose"] = name, pose7[1:]
+        w.structs(rest, 8)
+    return w.getvalue()
+
+
 def pose_to_msg(pose: np.ndarray) -> Pose:
     """geometry_msgs/Pose of a 4x4 rigid transform (camera-to-world, camera = optical frame), re-orthonormalised."""
     t = np.asarray(pose, dtype=np.float64)
@@ -326,10 +375,9 @@ def pose_to_msg(pose: np.ndarray) -> Pose:
         raise InvalidPoseError(f"pose must be a 4x4 matrix, got shape {t.shape}")
     if not np.all(np.isfinite(t)):
         raise InvalidPoseError(f"pose contains NaN or inf (tracking diverged?): {t.tolist()}")
-    rotation = t[:3, :3]
-    error = np.abs(rotation.T @ rotation - np.eye(3)).max()
-    bottom_error = np.abs(t[3] - [0, 0, 0, 1]).max()
-    if error > _ROTATION_DRIFT_LIMIT or np.linalg.det(rotation) < 0 or bottom_error > _ROTATION_DRIFT_LIMIT:
+    if not rigid_transforms(t)[()]:
+        rotation = t[:3, :3]
+        error = np.abs(rotation.T @ rotation - np.eye(3)).max()
         raise InvalidPoseError(
             f"pose is not a rigid transform (|R^T R - I| = {error:.2e}, det R = {np.linalg.det(rotation):.3f}, "
             f"bottom row {t[3].tolist()}); pass a camera-to-world [R t; 0 0 0 1] matrix"

@@ -30,12 +30,12 @@ from geometry_msgs.msg import Point, Pose, Vector3
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from eslam_ros.cdr import CdrWriter
 from eslam_ros.conversions import Stamp, to_time
 
 # Colour of a mesh given without vertex colours: light grey, opaque.
 DEFAULT_MESH_COLOR = (0.8, 0.8, 0.8, 1.0)
 # CDR encapsulation header: representation CDR_LE (0x0001), options 0. rmw_fastrtps writes the same.
-_CDR_LE_HEADER = b"\x00\x01\x00\x00"
 
 
 class InvalidMeshError(ValueError):
@@ -121,55 +121,8 @@ def _rgba_float(colors: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------ CDR bytes
 
 
-class _CdrWriter:
-    """Little-endian plain CDR (XCDR1), as rmw_fastrtps serialises ROS 2 messages.
-
-    Every primitive is aligned to its own size, counted from the end of the 4-byte encapsulation header. Strings
-    are a uint32 length (including the terminating NUL) and the bytes; sequences a uint32 count and the elements.
-    """
-
-    def __init__(self) -> None:
-        self._chunks: list[bytes] = [_CDR_LE_HEADER]
-        self._offset = 0
-
-    def _align(self, size: int) -> None:
-        padding = -self._offset % size
-        if padding:
-            self._raw(b"\x00" * padding)
-
-    def _raw(self, data: Any) -> None:
-        """Bytes, or any C-contiguous buffer (kept by reference until getvalue: the big arrays are copied once)."""
-        view = memoryview(data)
-        self._chunks.append(view)
-        self._offset += view.nbytes
-
-    def primitives(self, fmt: str, *values: Any) -> None:
-        """Values of one primitive type (struct format letter, e.g. 'd', 'f', 'i', 'I', '?')."""
-        self._align(struct.calcsize(fmt))
-        self._raw(struct.pack(f"<{len(values)}{fmt}", *values))
-
-    def string(self, text: str) -> None:
-        encoded = text.encode("utf-8")
-        self.primitives("I", len(encoded) + 1)
-        self._raw(encoded + b"\x00")
-
-    def sequence(self, elements: np.ndarray, alignment: int) -> None:
-        """A sequence of fixed-size structs of one primitive type, given as an (N, fields) array."""
-        self.primitives("I", len(elements))
-        if len(elements):  # an empty sequence has no element to align
-            self._align(alignment)
-            self._raw(np.ascontiguousarray(elements))
-
-    def time(self, stamp: Time) -> None:
-        self.primitives("i", stamp.sec)
-        self.primitives("I", stamp.nanosec)
-
-    def getvalue(self) -> bytes:
-        return b"".join(self._chunks)
-
-
 def _write_marker(
-    w: _CdrWriter,
+    w: CdrWriter,
     header: Header,
     ns: str,
     marker_id: int,
@@ -217,7 +170,7 @@ def serialize_mesh_marker_array(
     """CDR bytes of the MarkerArray that `mesh_to_marker_array` returns; publish them with `publisher.publish`."""
     blocks = triangle_blocks(vertices, faces, colors, max_triangles_per_marker, triangle_budget)
     header = Header(stamp=to_time(stamp), frame_id=str(frame_id))
-    w = _CdrWriter()
+    w = CdrWriter()
     w.primitives("I", 1 + len(blocks))
     _write_marker(w, header, ns, 0, Marker.TRIANGLE_LIST, Marker.DELETEALL, (0.0, 0.0, 0.0, 0.0), None)
     for marker_id, block in enumerate(blocks):
@@ -245,7 +198,7 @@ def serialize_block_markers(
     block in `removed`, and an ADD (a TRIANGLE_LIST replacing any earlier marker of that id) for each of `blocks`."""
     header = Header(stamp=to_time(stamp), frame_id=str(frame_id))
     removed = list(removed)
-    w = _CdrWriter()
+    w = CdrWriter()
     w.primitives("I", int(delete_all) + len(removed) + len(blocks))
     if delete_all:
         _write_marker(w, header, ns, 0, Marker.TRIANGLE_LIST, Marker.DELETEALL, (0.0, 0.0, 0.0, 0.0), None)

@@ -66,6 +66,7 @@ from eslam_ros.conversions import (
     image_to_depth,
     image_to_rgb,
     intrinsics_from_camera_info,
+    path_cdr,
     pose_to_msg,
     sec_to_stamp,
     stamp_to_sec,
@@ -354,19 +355,6 @@ def odometry(pose: np.ndarray, twist: tuple[np.ndarray, np.ndarray], stamp: Any,
     linear, angular = twist
     msg.twist.twist.linear = Vector3(x=float(linear[0]), y=float(linear[1]), z=float(linear[2]))
     msg.twist.twist.angular = Vector3(x=float(angular[0]), y=float(angular[1]), z=float(angular[2]))
-    return msg
-
-
-def path_message(timestamps: np.ndarray, poses: np.ndarray, frame_id: str) -> PathMsg:
-    msg = PathMsg()
-    msg.header.frame_id = frame_id
-    for t, pose in zip(timestamps, poses):
-        try:
-            msg.poses.append(pose_stamped(pose, sec_to_stamp(t), frame_id))
-        except InvalidPoseError:  # not a rotation: left out (counted as poses_invalid when it was tracked)
-            continue
-    if len(msg.poses):
-        msg.header.stamp = msg.poses[-1].header.stamp
     return msg
 
 
@@ -927,7 +915,7 @@ class SlamNode(Node):
             poses = poses.copy()
             poses[finite] = base_in_map(poses[finite], base_camera)
         if finite.any():
-            self.path_pub.publish(path_message(timestamps[finite], poses[finite], self.settings.map_frame))
+            self.path_pub.publish(path_cdr(timestamps[finite], poses[finite], self.settings.map_frame))
             self.outputs.paths += 1
 
     def _publish_mesh(self) -> None:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from eslam_core.geometry import interpolate_pose, rotation_angle_deg
+from eslam_core.geometry import interpolate_pose, rotation_angle_deg, rotvec_to_matrix
 from eslam_core.trajectory import TrackedTrajectory
 
 
@@ -52,3 +52,31 @@ def test_drift_between_corrected_keyframes_is_removed():
         assert rotation_angle_deg(poses[k][:3, :3].T @ truth[k][:3, :3]) < 0.01, k
     # After the newest keyframe there is nothing to blend with: those frames move with it rigidly.
     assert np.allclose(poses[5], truth[4] @ np.linalg.inv(tracked[4]) @ tracked[5])
+
+
+def test_poses_are_recomputed_only_where_keyframes_moved_and_equal_frame_pose():
+    """poses() caches: after refinements and new frames in any order it equals frame_pose of every record."""
+    from eslam_core.trajectory import TrackedTrajectory
+
+    rng = np.random.default_rng(0)
+    traj = TrackedTrajectory()
+
+    def noisy(k):
+        pose = np.eye(4)
+        pose[:3, :3] = rotvec_to_matrix(rng.normal(size=3) * 0.05)
+        pose[:3, 3] = [0.01 * k, 0.0, 0.0] + rng.normal(size=3) * 0.01
+        return pose
+
+    for k in range(40):
+        traj.record(k, k / 30, noisy(k), 0.0, None, keyframe=k % 4 == 0)
+        if k % 7 == 3:  # mapping refines the newest keyframes, sometimes before the next frame comes
+            traj.refine({traj.keyframes - 1: noisy(k), max(traj.keyframes - 2, 0): noisy(k)})
+        if k % 5 == 0:
+            cached = traj.poses()
+            np.testing.assert_array_equal(cached, np.stack([traj.pose(i) for i in range(len(traj))]))
+    before = traj.poses()
+    traj.refine({3: noisy(12)})
+    after = traj.poses()
+    moved = np.flatnonzero(np.abs(after - before).max(axis=(1, 2)) > 0)
+    assert set(traj.records[k].reference for k in moved) == {2, 3}  # keyframe 3's frames, and those blending into it
+    np.testing.assert_array_equal(after, np.stack([traj.pose(i) for i in range(len(traj))]))

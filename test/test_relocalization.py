@@ -183,3 +183,32 @@ def test_config_is_validated():
         RelocalizationConfig(retrieval="dbow").validate(check)
     with pytest.raises(ConfigError, match="relocalization.min_inliers"):
         RelocalizationConfig(min_inliers=3).validate(check)
+
+
+def test_the_front_end_indexes_keyframes_later_and_before_it_relocalizes(room):
+    """A tracker indexes new keyframes when it is idle (index_next), never more than MAX_UNINDEXED behind, and
+    a camera lost before that is matched against every keyframe all the same, at its refined pose."""
+    from eslam_core.config import load_config
+    from eslam_core.frames import pixel_directions_table
+    from eslam_core.mapping.keyframes import Keyframe
+    from eslam_core.tracking.frontend import MAX_UNINDEXED, TrackingFrontEnd
+
+    scene, poses, _ = room
+    fe = TrackingFrontEnd(load_config("demo"), INTR, pixel_directions_table(INTR))
+    kfs = []
+    for number, i in enumerate(KEYFRAMES):
+        rgb, depth = render_frame(scene, INTR, poses[i], frame_rng(0, i))
+        kfs.append(Keyframe.from_tensors(i, 0.0, torch.from_numpy(rgb) / 255.0, torch.from_numpy(depth),
+                                         torch.from_numpy(depth > 0), torch.eye(4), number))
+        fe.remember(kfs[-1])
+        assert len(fe.unindexed) <= MAX_UNINDEXED
+    assert len(fe.places) + len(fe.unindexed) == len(KEYFRAMES) and fe.unindexed
+    fe.forget([kfs[-1].number])  # dropped by the keyframe store before it was indexed: never indexed
+    fe.refine({kf.number: torch.from_numpy(poses[kf.frame_index]).float() for kf in kfs})
+    while fe.index_next():
+        pass
+    assert not fe.unindexed and len(fe.places) == len(KEYFRAMES) - 1
+    rgb, depth = render(scene, poses[KEYFRAMES[-2] + 5], KEYFRAMES[-2] + 5)
+    found = fe.places.relocalize(rgb, depth, INTR)
+    assert found is not None and found.keyframe_id == len(KEYFRAMES) - 2  # the keyframe's number
+    assert pose_error(found.pose, poses[KEYFRAMES[-2] + 5])[0] < 0.05  # at the refined keyframe poses

@@ -280,11 +280,38 @@ def test_published_poses_stay_orthonormal_over_10000_composed_updates():
 
 
 def test_a_path_with_a_broken_pose_still_carries_the_others():
-    from eslam_ros.slam_node import path_message
+    from nav_msgs.msg import Path as PathMsg
+
+    from eslam_ros.conversions import path_cdr
 
     poses = np.stack([np.eye(4), np.diag([2.0, 2.0, 2.0, 1.0]), np.eye(4)])  # the middle one is no rotation
-    path = path_message(np.array([1.0, 2.0, 3.0]), poses, "map")
+    path = deserialize_message(path_cdr(np.array([1.0, 2.0, 3.0]), poses, "map"), PathMsg)
     assert [p.header.stamp.sec for p in path.poses] == [1, 3] and path.header.stamp.sec == 3
+    empty = deserialize_message(path_cdr(np.zeros(0), np.zeros((0, 4, 4)), "map"), PathMsg)
+    assert empty.header.frame_id == "map" and not empty.poses
+
+
+@pytest.mark.parametrize("frame_id", ["map", "odom", "a_frame", "world_frame_7"])  # every padding of the records
+def test_a_path_written_as_bytes_is_the_message_rclpy_builds(frame_id):
+    from nav_msgs.msg import Path as PathMsg
+
+    from eslam_ros.conversions import path_cdr
+    from eslam_ros.slam_node import pose_stamped
+
+    rng = np.random.default_rng(len(frame_id))
+    poses = np.tile(np.eye(4), (5, 1, 1))
+    for pose in poses:
+        pose[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+        pose[:3, 3] = rng.normal(size=3)
+    poses[2, :3, :3] *= 1 + 5e-4  # drifted: published as its rotation
+    stamps = 1_700_000_000 + np.arange(5) / 30 + 0.123456789
+    expected = PathMsg()
+    expected.header.frame_id = frame_id
+    expected.poses = [pose_stamped(p, sec_to_stamp(t), frame_id) for t, p in zip(stamps, poses)]
+    expected.header.stamp = expected.poses[-1].header.stamp
+    data = path_cdr(stamps, poses, frame_id)
+    assert len(data) == len(serialize_message(expected))  # (padding bytes rclpy leaves as they were)
+    assert deserialize_message(data, PathMsg) == expected  # every field, to the bit
 
 
 def test_stamps_round_trip_to_the_nanosecond():

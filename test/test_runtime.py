@@ -169,7 +169,7 @@ def test_stage_profile_divides_by_the_timed_events():
     rows = {row["stage"]: row for row in stage_profile(board.snapshot())}
     assert 10 <= rows["tracker: front end (tracking)"]["ms"] < 50
     assert rows["mapper: mapping step"]["ms"] == pytest.approx(300.0)
-    assert np.isnan(rows["tracker: new keyframe (index, hand-over)"]["ms"])  # no keyframe timed yet
+    assert np.isnan(rows["tracker: new keyframe (hand-over)"]["ms"])  # no keyframe timed yet
 
 
 def test_workers_and_shared_memory_are_released(runs):

@@ -301,11 +301,12 @@ class Counter(IntEnum):
     # The per-stage profile (seconds, summed; see STAGES): where each worker's time goes.
     TRACK_PREPARE_S = 28  # tracker: the ring's images as the method's tensors (prepare_frame)
     TRACK_ALIGN_S = 29  # tracker: the front end (prediction, relocalization while lost, tracking, quality)
-    TRACK_KEYFRAME_S = 30  # tracker: a new keyframe indexed for relocalization and handed to the mapper
+    TRACK_KEYFRAME_S = 30  # tracker: a new keyframe made, handed to the mapper, added to observed space
     TRACK_REPORT_S = 31  # tracker: the pose sent to the parent
     MAP_ADD_S = 32  # mapper: keyframes added to the store (the map's growth test and growth, observed space)
     MAP_STEP_S = 33  # mapper: mapping steps (publications in the middle of a step included)
     MAP_MEASURE_S = 34  # mapper: memory and the consistency score after each step
+    TRACK_INDEX_S = 35  # tracker: keyframes indexed for relocalization (while it waits for frames, if it does)
 
 
 # The stage counters, each with the events it is divided by: (stage, seconds, events, events not timed). The
@@ -314,7 +315,8 @@ STAGES = (
     ("tracker: map read", Counter.READ_SECONDS, Counter.TRACKED, 0),
     ("tracker: frame preparation", Counter.TRACK_PREPARE_S, Counter.TRACKED, 0),
     ("tracker: front end (tracking)", Counter.TRACK_ALIGN_S, Counter.TRACKED, 0),
-    ("tracker: new keyframe (index, hand-over)", Counter.TRACK_KEYFRAME_S, Counter.KEYFRAMES, 1),
+    ("tracker: new keyframe (hand-over)", Counter.TRACK_KEYFRAME_S, Counter.KEYFRAMES, 1),
+    ("tracker: keyframe indexed (relocalization)", Counter.TRACK_INDEX_S, Counter.KEYFRAMES, 1),
     ("tracker: pose to the parent", Counter.TRACK_REPORT_S, Counter.TRACKED, 0),
     ("mapper: keyframes added (growth, observed space)", Counter.MAP_ADD_S, Counter.MAPPING_STEPS, 1),
     ("mapper: mapping step", Counter.MAP_STEP_S, Counter.MAPPING_STEPS, 1),

@@ -425,17 +425,23 @@ class TrackerWorker:
             if self.ch.control.stopping or self.ch.ring.drained():
                 self._finish()
                 continue
-            frame, skipped = self.ch.ring.take(self.live, POLL_S)
+            waiting = bool(self.frontend.unindexed)  # keyframes to index for relocalization while idle
+            frame, skipped = self.ch.ring.take(self.live, 0.0 if waiting else POLL_S)
             if skipped:
                 self.ch.board.add(Counter.DROPPED_BY_TRACKER, skipped)
             if frame is None:
-                self.cores.busy(False)
+                if not (waiting and self._index_idle()):
+                    self.cores.busy(False)
                 continue
             self._sync_epoch()  # a reset between the last check and this frame: track it in the new epoch
             try:
                 self._track(frame)
             except Interrupted:
                 self.ch.board.add(Counter.DROPPED_BY_TRACKER)  # taken, never tracked
+
+    def _index_idle(self) -> bool:
+        with self.ch.board.timed(Counter.TRACK_INDEX_S):
+            return self.frontend.index_next()
 
     def _sync_epoch(self) -> None:
         epoch = self.ch.control.epoch
@@ -509,7 +515,7 @@ class TrackerWorker:
             self.replica.start(extent)
             record = self.trajectory.record(pf.index, pf.timestamp, pose0, 0.0, pf.gt_pose, keyframe=True)
             kf = new_keyframe(pf, torch.from_numpy(pose0).float(), 0)
-            self.frontend.remember(kf, pf)
+            self.frontend.remember(kf)
             self._hand_over(kf, extent)
         else:
             with board.timed(Counter.TRACK_ALIGN_S):
@@ -522,8 +528,9 @@ class TrackerWorker:
         if tracked is not None and tracked.keyframe:  # after the pose is out: it need not wait for the keyframe
             with board.timed(Counter.TRACK_KEYFRAME_S):
                 kf = new_keyframe(pf, tracked.pose, record.reference)
-                self.frontend.remember(kf, pf)
                 self._hand_over(kf, None)
+            with board.timed(Counter.TRACK_INDEX_S):
+                self.frontend.remember(kf)  # (indexed now only if the tracker was not idle for the older ones)
         self.tracked += 1
         board.add(Counter.TRACKED)
         board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())

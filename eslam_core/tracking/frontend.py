@@ -41,6 +41,7 @@ from eslam_core.trajectory import TrackedTrajectory
 log = logging.getLogger("eslam")
 
 MAX_EXTRAPOLATION = 4.0  # frame gaps the constant-velocity prediction extrapolates over
+MAX_UNINDEXED = 2  # new keyframes waiting for relocalization features (see TrackingFrontEnd.remember)
 
 
 class MapView(Protocol):
@@ -72,7 +73,8 @@ class TrackingFrontEnd:
         self.good: list[int] = []  # trajectory positions of the last well-tracked frames (the prediction's)
         self.recent_losses: deque = deque(maxlen=30)  # of well-tracked frames: the residual score's reference
         self.since_keyframe = 0
-        self.unindexed: list = []  # keyframes of a loaded map not in `places` yet
+        self.unindexed: list = []  # keyframes not in `places` yet (see remember)
+        self._loaded_unindexed = False
         self.fallback_pose = np.eye(4)
         self.places = None  # the keyframes for relocalization (a KeyframeDatabase), when enabled
         if cfg.relocalization.enabled and self.tracker is not None:
@@ -85,31 +87,45 @@ class TrackingFrontEnd:
         (those with every pixel: a reduced keyframe is too coarse for ORB), indexed when first needed."""
         self.lost, self.good = True, []
         self.unindexed = [kf for kf in keyframes if kf.stride == 1]
+        self._loaded_unindexed = True
         if len(keyframes):  # the prior of a first frame that no keyframe explains: where the map ended
             self.fallback_pose = keyframes[-1].pose.double().numpy()
 
-    def remember(self, kf: Keyframe, pf: PreparedFrame) -> None:
-        """A new keyframe (made of `pf`), for relocalization."""
+    def remember(self, kf: Keyframe) -> None:
+        """A new keyframe, for relocalization. Its features are extracted later (`index_next`, when the caller is
+        idle, or before the next relocalization): 6-15 ms per keyframe that a live tracker spends better on the
+        next frame. At most MAX_UNINDEXED wait, so that a tracker never idle holds no more images than that."""
         if self.places is not None:
-            self.places.add(kf.number, kf.rgb.numpy(), pf.depth.numpy(), kf.pose, self.intr)
+            self.unindexed.append(kf)
+            while len(self.unindexed) > MAX_UNINDEXED:
+                self.index_next()
+
+    def index_next(self) -> bool:
+        """Index the oldest keyframe waiting for it; False if none waits."""
+        if self.places is None or not self.unindexed:
+            return False
+        kf = self.unindexed.pop(0)
+        self.places.add(kf.number, kf.rgb.numpy(), kf.depth_image().numpy(), kf.pose, self.intr)
+        if not self.unindexed and self._loaded_unindexed:  # a loaded map: its words, before the first query
+            self._loaded_unindexed = False
+            self.places.build_vocabulary()
+        return True
 
     def forget(self, numbers) -> None:
         """Keyframes the map's store dropped (as redundant or over its budget) are not relocalized against: the
         index stays the size of the store, not of the time spent."""
         if self.places is not None:
-            for number in numbers:
+            dropped = {int(n) for n in numbers}
+            self.unindexed = [kf for kf in self.unindexed if kf.number not in dropped]
+            for number in dropped:
                 self.places.remove(number)
-
-    def _index_loaded_keyframes(self) -> None:
-        for kf in self.unindexed:
-            self.places.add(kf.number, kf.rgb.numpy(), kf.depth_image().numpy(), kf.pose, self.intr)
-        if self.unindexed:
-            self.places.build_vocabulary()
-        self.unindexed = []
 
     def refine(self, poses: dict) -> None:
         if self.places is not None:
+            waiting = {kf.number: kf for kf in self.unindexed}
             for number, pose in poses.items():
+                if int(number) in waiting:
+                    waiting[int(number)].pose = torch.as_tensor(pose).float()
                 if int(number) in self.places.entries:
                     self.places.set_pose(int(number), pose)
 
@@ -154,8 +170,8 @@ class TrackingFrontEnd:
             self._note_odometry(pf, init.double().numpy())
             return self._decided(len(trajectory), init, init, 0.0, Quality(1.0, "ok", False), None)
         found = None
-        if self.lost and self.places is not None:
-            self._index_loaded_keyframes()
+        while self.lost and self.index_next():
+            pass
         if self.lost and self.places is not None and len(self.places):
             found = self.places.relocalize(rgb_uint8(pf.rgb).numpy(), pf.depth.numpy(), self.intr)
             if found is not None:
