@@ -132,7 +132,7 @@ def main() -> int:
     ap.add_argument("--kind", default="auto", help="data set kind (icl for ICL-NUIM)")
     ap.add_argument("--frames", type=parse_frames, default=(0, None), help="A:B, frames to write (default all)")
     ap.add_argument("--rate", type=float, default=1.0, help="playback rate (1 = recorded 30 Hz)")
-    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--preset", default="live", help="the node's preset (default: its default)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--policy", default="live")
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",

@@ -52,8 +52,9 @@ def _param(default: Any, name: str, doc: str) -> Any:
 class NodeSettings:
     """What the node does around the SLAM core. Field metadata: ROS parameter name and description."""
 
-    preset: str = _param("fast", "preset", "eslam_core preset the configuration starts from (fast: live use on a "
-                                           "CPU; replica, tum, icl, scannet, demo: the paper's settings)")
+    preset: str = _param("live", "preset", "eslam_core preset the configuration starts from (live: a 30 Hz camera on "
+                                           "2 cores; fast: offline on a CPU; replica, tum, icl, scannet, demo: the "
+                                           "paper's settings)")
     config_file: str = _param("", "config_file", "eslam_core YAML file used instead of `preset` (it may `extends:` "
                                                  "a preset); empty = use the preset")
     map_frame: str = _param("map", "map_frame", "frame_id of published poses, path and mesh (the first camera pose)")

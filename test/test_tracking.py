@@ -105,6 +105,36 @@ def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_we
     assert rotation_angle_deg(est[:3, :3].T @ gt[:3, :3]) < 0.5
 
 
+@pytest.mark.xfail(strict=True, reason="issue 17, not reached: at the `live` settings (6 iterations, 1000 points) the "
+                   "tracker ends 7.3 cm off from this start; its basin is narrower than 5 cm / 5 degrees")
+@pytest.mark.parametrize("preset", ["live"])
+def test_sdf_tracker_at_the_presets_settings_converges_from_5_cm_and_5_degrees(fitted_map, room_sequence, preset):
+    """The convergence basin of the live trackers (the preset's iterations, points, pyramid and photometric term
+    against the newest keyframe, 3 frames back): a prediction 5 cm and 5 degrees off, about what a 36 cm/s
+    hand-held camera moves in 4 frames at 30 Hz, is corrected to under 1 cm / 0.5 degrees."""
+    from dataclasses import replace
+
+    from eslam_core.tracking.sdf_tracker import SDFTracker
+
+    cfg, field, dirs = fitted_map
+    cfg = replace(cfg, tracking=replace(load_config(preset).tracking, border=cfg.tracking.border))
+    ds = room_sequence
+    f6 = prepare_frame(ds[6], ds.intrinsics, cfg.camera)
+    keyframe = Keyframe.from_tensors(6, f6.timestamp, f6.rgb, f6.depth, f6.depth >= 0,
+                                     torch.from_numpy(f6.gt_pose).float())
+    frame = prepare_frame(ds[9], ds.intrinsics, cfg.camera)
+    gt = frame.gt_pose
+    start = gt.copy()
+    start[:3, :3] = axis_angle([0.6, -1.0, 0.3], 5.0) @ gt[:3, :3]
+    start[:3, 3] += 0.05 * np.array([0.6, -0.48, 0.64])  # 5 cm
+    torch.manual_seed(0)
+    result = SDFTracker(cfg, dirs, ds.intrinsics).track(field, frame, torch.from_numpy(start).float(),
+                                                        keyframe=keyframe)
+    est = result.pose.double().numpy()
+    assert np.linalg.norm(est[:3, 3] - gt[:3, 3]) < 0.01
+    assert rotation_angle_deg(est[:3, :3].T @ gt[:3, :3]) < 0.5
+
+
 def test_draw_in_extent_keeps_only_points_inside_and_estimates_their_share():
     candidates = torch.arange(0, 2000, 2)  # even pixels; pixel p's point lies at x = p / 1000 m
     torch.manual_seed(0)
