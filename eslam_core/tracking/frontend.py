@@ -94,7 +94,7 @@ class TrackingFrontEnd:
     def remember(self, kf: Keyframe) -> None:
         """A new keyframe, for relocalization. Its features are extracted later (`index_next`, when the caller is
         idle, or before the next relocalization): 6-15 ms per keyframe that a live tracker spends better on the
-        next frame. At most MAX_UNINDEXED wait, so that a tracker never idle holds no more images than that."""
+        next frame. At most MAX_UNINDEXED wait: a tracker that is never idle indexes them here, a few late."""
         if self.places is not None:
             self.unindexed.append(kf)
             while len(self.unindexed) > MAX_UNINDEXED:
