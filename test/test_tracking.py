@@ -76,17 +76,11 @@ def test_outlier_mask_drops_large_depth_errors():
     assert outlier_mask(err, 10.0).tolist() == [True, True, True, True, False]
 
 
-@pytest.mark.parametrize("color_weight,with_keyframe", [(0.0, False), (1.0, False), (0.0, True), (1.0, True)])
-def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_weight, with_keyframe):
-    """The fast Gauss-Newton alignment (depth only, with the map's colour, with the keyframe's images) converges
-    from 3 cm / 3 degrees too."""
+def _sdf_track_frame_9(cfg, field, dirs, ds, axis, degrees: float, offset, with_keyframe: bool):
+    """The SDF tracker on frame 9 from its true pose turned by `degrees` about `axis` and moved by `offset`
+    (metres), with frame 6 as the photometric keyframe if asked: (tracker, result, true pose)."""
     from eslam_core.tracking.sdf_tracker import SDFTracker
 
-    cfg, field, dirs = fitted_map
-    cfg.tracking.iterations = 15
-    cfg.tracking.rays = 3000
-    cfg.tracking.color_weight = color_weight
-    ds = room_sequence
     keyframe = None
     if with_keyframe:
         f6 = prepare_frame(ds[6], ds.intrinsics, cfg.camera)
@@ -95,10 +89,22 @@ def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_we
     frame = prepare_frame(ds[9], ds.intrinsics, cfg.camera)
     gt = frame.gt_pose
     start = gt.copy()
-    start[:3, :3] = axis_angle([-0.5, 1.0, 0.4], 3.0) @ gt[:3, :3]
-    start[:3, 3] += np.array([-0.015, 0.02, 0.015])
+    start[:3, :3] = axis_angle(axis, degrees) @ gt[:3, :3]
+    start[:3, 3] += np.asarray(offset)
     tracker = SDFTracker(cfg, dirs, ds.intrinsics)
-    result = tracker.track(field, frame, torch.from_numpy(start).float(), keyframe=keyframe)
+    return tracker, tracker.track(field, frame, torch.from_numpy(start).float(), keyframe=keyframe), gt
+
+
+@pytest.mark.parametrize("color_weight,with_keyframe", [(0.0, False), (1.0, False), (0.0, True), (1.0, True)])
+def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_weight, with_keyframe):
+    """The fast Gauss-Newton alignment (depth only, with the map's colour, with the keyframe's images) converges
+    from 3 cm / 3 degrees too."""
+    cfg, field, dirs = fitted_map
+    cfg.tracking.iterations = 15
+    cfg.tracking.rays = 3000
+    cfg.tracking.color_weight = color_weight
+    tracker, result, gt = _sdf_track_frame_9(cfg, field, dirs, room_sequence, [-0.5, 1.0, 0.4], 3.0,
+                                             [-0.015, 0.02, 0.015], with_keyframe)
     assert (tracker._reference is not None) == with_keyframe
     est = result.pose.double().numpy()
     assert np.linalg.norm(est[:3, 3] - gt[:3, 3]) < 0.01
@@ -114,22 +120,11 @@ def test_sdf_tracker_at_the_presets_settings_converges_from_5_cm_and_5_degrees(f
     hand-held camera moves in 4 frames at 30 Hz, is corrected to under 1 cm / 0.5 degrees."""
     from dataclasses import replace
 
-    from eslam_core.tracking.sdf_tracker import SDFTracker
-
     cfg, field, dirs = fitted_map
     cfg = replace(cfg, tracking=replace(load_config(preset).tracking, border=cfg.tracking.border))
-    ds = room_sequence
-    f6 = prepare_frame(ds[6], ds.intrinsics, cfg.camera)
-    keyframe = Keyframe.from_tensors(6, f6.timestamp, f6.rgb, f6.depth, f6.depth >= 0,
-                                     torch.from_numpy(f6.gt_pose).float())
-    frame = prepare_frame(ds[9], ds.intrinsics, cfg.camera)
-    gt = frame.gt_pose
-    start = gt.copy()
-    start[:3, :3] = axis_angle([0.6, -1.0, 0.3], 5.0) @ gt[:3, :3]
-    start[:3, 3] += 0.05 * np.array([0.6, -0.48, 0.64])  # 5 cm
     torch.manual_seed(0)
-    result = SDFTracker(cfg, dirs, ds.intrinsics).track(field, frame, torch.from_numpy(start).float(),
-                                                        keyframe=keyframe)
+    _, result, gt = _sdf_track_frame_9(cfg, field, dirs, room_sequence, [0.6, -1.0, 0.3], 5.0,
+                                       0.05 * np.array([0.6, -0.48, 0.64]), with_keyframe=True)  # 5 cm
     est = result.pose.double().numpy()
     assert np.linalg.norm(est[:3, 3] - gt[:3, 3]) < 0.01
     assert rotation_angle_deg(est[:3, :3].T @ gt[:3, :3]) < 0.5
