@@ -8,6 +8,7 @@ import torch
 
 from eslam_core.camera import Frame
 from eslam_core.config import load_config
+from eslam_core.frames import prepare_frame
 from eslam_core.geometry import rotation_angle_deg
 from eslam_core.slam import SLAM
 
@@ -64,6 +65,22 @@ def test_covered_lens_and_a_jump_are_lost_never_mapped_and_found_again(room_sequ
     assert all(results[k][2] == results[lost_frames[0]][2] for k in lost_frames)  # nothing mapped while lost
     t_err, r_err = results[-1][1]
     assert t_err < 0.02 and r_err < 1.0
+
+
+def test_a_camera_lost_for_a_few_frames_is_predicted_where_its_motion_took_it(room_sequence):
+    """Covered for 2 frames of a walk at 1 cm per frame: the next frame is predicted from the velocity of the last
+    tracked ones (over the 3 frame gaps), not from where the camera was last tracked, 3 cm behind."""
+    slam = SLAM(load_config("fast", FAST), room_sequence.intrinsics)
+    for i in range(20):
+        slam.step(room_sequence[i])
+    for i in range(20, 22):
+        assert slam.step(_covered(room_sequence[i])).lost
+    frame = room_sequence[22]
+    predicted, gap = slam.frontend.predict(prepare_frame(frame, slam.intr, slam.cfg.camera), slam.trajectory)
+    assert gap == pytest.approx(3.0, abs=1e-3)
+    t_err, r_err = _error(predicted, frame.pose)
+    assert t_err < 0.01 and r_err < 1.0
+    assert np.linalg.norm(slam.trajectory.pose(19)[:3, 3] - frame.pose[:3, 3]) > 0.025  # the last tracked pose
 
 
 def test_localization_mode_does_not_change_the_map(mapped, room_sequence):
