@@ -21,7 +21,7 @@ from eslam_core.mapping.scene_map import SceneMap, initial_extent
 from eslam_core.tracking.frontend import TrackingFrontEnd
 from eslam_core.trajectory import TrackedTrajectory
 
-CHECKPOINT_VERSION = 3
+CHECKPOINT_VERSION = 4
 
 
 @dataclass
