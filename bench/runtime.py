@@ -180,9 +180,9 @@ def main() -> int:
                          "divided by their number (default: never, every step runs all its iterations as in "
                          "lock-step)")
     ap.add_argument("--no-lend", action="store_true", help="pipelined: an idle worker keeps its threads")
-    ap.add_argument("--publish-every", type=int, default=5,
-                    help="pipelined: mapping iterations between mid-step map publications (default 5; larger: the "
-                         "tracker sees only maps at the end of a step)")
+    ap.add_argument("--publish-every", type=int, default=0,
+                    help="pipelined: mapping iterations between mid-step map publications (default 0: the tracker "
+                         "sees only maps at the end of a step)")
     ap.add_argument("--repeats", type=int, default=1, help="runs per mode, in alternating order (medians reported)")
     ap.add_argument("--size", default="320x240", help="synthetic room image size (without --data)")
     ap.add_argument("--out", type=Path, default=Path("bench_runtime.json"), help="JSON results file")

@@ -114,11 +114,11 @@ def semaphore_names(*objects) -> list[str]:
 
 class MultiProcessRuntime(SavingMixin):
     def __init__(self, cfg: Config, intrinsics: Intrinsics, policy: str = "offline", threads: Optional[int] = None,
-                 capacity: int = DEFAULT_CAPACITY, publish_every: int = 5, lend_threads: bool = True,
+                 capacity: int = DEFAULT_CAPACITY, publish_every: int = 0, lend_threads: bool = True,
                  keyframe_backlog: Optional[int] = None, catch_up_iterations: Optional[int] = None,
                  checkpoint: Optional[str] = None):
         """threads: torch threads per worker; capacity: frames in the input ring; publish_every: optimiser
-        iterations between mid-step map publications; lend_threads: an idle worker's threads go to the busy one;
+        iterations between mid-step map publications (0 = only after each step); lend_threads: an idle worker's threads go to the busy one;
         keyframe_backlog: keyframes that may wait for the mapper before the older ones are merged into the newest
         one's step (None = every keyframe gets a step; the live policy always uses 0); catch_up_iterations: once
         newer keyframes wait, a mapping step ends after this many iterations divided by their number (None = never).
@@ -127,9 +127,9 @@ class MultiProcessRuntime(SavingMixin):
         self.intrinsics = intrinsics
         self.policy = check_policy(policy)
         self.threads = threads or cfg.run.threads or default_threads()
-        if self.threads < 1 or capacity < 1 or publish_every < 1:
-            raise RuntimeSetupError(f"threads ({self.threads}), capacity ({capacity}) and publish_every "
-                                    f"({publish_every}) must all be at least 1")
+        if self.threads < 1 or capacity < 1 or publish_every < 0:
+            raise RuntimeSetupError(f"threads ({self.threads}) and capacity ({capacity}) must be at least 1, "
+                                    f"publish_every ({publish_every}) at least 0")
         self.capacity = capacity
         self.publish_every = publish_every
         self.lend_threads = lend_threads

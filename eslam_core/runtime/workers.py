@@ -13,7 +13,7 @@ runs the warm-up, then one mapping step per keyframe (offline policy). When keyf
 of the newest as its "previous keyframes" instead of getting a step of their own, so the map keeps up with the camera.
 With `catch_up_iterations`, every keyframe keeps its step, but a step ends early once newer keyframes wait, the
 sooner the more of them (`_behind`): the mapper stays within about a keyframe of the tracker. After each step, and
-every `publish_every` optimiser iterations during a step, it publishes the parameters into the shared map. The
+with `publish_every`, every so many optimiser iterations during a step, it publishes the parameters into the shared map. The
 publishing and the checks for stop / reset / snapshot requests happen in an optimiser post-step hook, so that
 `Mapper.map` knows nothing of them and a long step (the warm-up) still reacts within one iteration.
 
@@ -189,7 +189,7 @@ class WorkerSetup:
     threads: int
     parent_pid: int
     log_level: int
-    publish_every: int = 5  # optimiser iterations between mid-step map publications
+    publish_every: int = 0  # optimiser iterations between mid-step map publications (0 = none)
     faults: str = ""
     lend_threads: bool = True  # an idle worker's threads go to the busy one (see CoreShare)
     # Keyframes allowed to wait while the mapper maps one; beyond that the older ones join the window of the newest
@@ -761,7 +761,7 @@ class MapperWorker:
             raise Interrupted
         self.cores.update()
         self.iterations += 1
-        if self.publishing_mid_step and self.iterations % self.setup.publish_every == 0:
+        if self.publishing_mid_step and self.setup.publish_every and self.iterations % self.setup.publish_every == 0:
             self._publish(step_done=False)
         self._serve_requests()
 
