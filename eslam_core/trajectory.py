@@ -29,8 +29,8 @@ class FrameRecord:
     lost: bool = False  # the camera was lost at this frame: the pose is a guess
 
 
-def frame_pose(records: Sequence[FrameRecord], keyframe_records: dict[int, int], keyframe_pose: Callable[[int], np.ndarray],
-               k: int) -> np.ndarray:
+def frame_pose(records: Sequence[FrameRecord], keyframe_records: dict[int, int],
+               keyframe_pose: Callable[[int], np.ndarray], k: int) -> np.ndarray:
     """The pose of frame `k` given the keyframe poses as mapping has refined them (`keyframe_records`: keyframe
     number -> its record): its keyframe's correction blended by time into the next keyframe's."""
     r = records[k]
@@ -46,9 +46,9 @@ def frame_pose(records: Sequence[FrameRecord], keyframe_records: dict[int, int],
 
 
 class _Columns:
-    """The records of a trajectory as growable arrays: a frame costs about 560 bytes here (poses, its scalars and
-    the cached pose), where a FrameRecord with its three 4x4 arrays held 1.2 KB in the tracking process and again
-    in the caller's, which grew by 80 MB over 20 minutes at 30 Hz."""
+    """The records of a trajectory as growable arrays: 430 bytes a frame (three 4x4 poses, six scalars), about 650
+    with the trajectory's cached pose and keyframe poses, where FrameRecords holding three 4x4 arrays each took
+    1.2 KB, in the tracking process and again in the caller's (80 MB over 20 minutes at 30 Hz)."""
 
     POSES = ("relative", "tracked", "gt_pose")
     SCALARS = {"index": np.int64, "timestamp": np.float64, "reference": np.int64, "tracking_loss": np.float64,
@@ -61,13 +61,24 @@ class _Columns:
 
     def append(self, r: FrameRecord) -> None:
         if self.n == len(self.arrays["index"]):  # double (the new half stays unwritten, so not resident, until used)
-            self.arrays = {name: np.concatenate([a, np.empty_like(a)]) for name, a in self.arrays.items()}
+            grown = {name: np.empty((max(2 * self.n, 256),) + a.shape[1:], a.dtype) for name, a in self.arrays.items()}
+            for name, a in grown.items():
+                a[:self.n] = self.arrays[name][:self.n]
+            self.arrays = grown
         k, a = self.n, self.arrays
         a["relative"][k], a["tracked"][k] = r.relative, r.tracked
         a["gt_pose"][k] = np.nan if r.gt_pose is None else r.gt_pose
         for name in self.SCALARS:
             a[name][k] = getattr(r, name)
         self.n += 1
+
+    @staticmethod
+    def of(columns: dict) -> "_Columns":
+        """Records from whole columns (a checkpoint's)."""
+        out = _Columns(0)
+        out.arrays = {name: np.array(columns[name], dtype=a.dtype) for name, a in out.arrays.items()}
+        out.n = len(out.arrays["index"])
+        return out
 
     def column(self, name: str) -> np.ndarray:
         return self.arrays[name][:self.n]
@@ -168,13 +179,8 @@ class TrackedTrajectory:
     @staticmethod
     def from_state_dict(state: dict) -> "TrackedTrajectory":
         traj = TrackedTrajectory()
-        columns = {name: c.numpy() for name, c in state["records"].items()}
-        n = len(columns["index"])
-        traj.records = _Columns(max(n, 1))
-        traj.records.arrays = {name: np.concatenate([columns[name], traj.records.arrays[name][n:]])
-                               for name in traj.records.arrays}
-        traj.records.n = n
-        for k, reference in enumerate(columns["reference"]):
+        traj.records = _Columns.of({name: c.numpy() for name, c in state["records"].items()})
+        for k, reference in enumerate(traj.records.column("reference")):
             traj.keyframe_records.setdefault(int(reference), k)
         traj.keyframe_poses = {int(i): p.numpy() for i, p in state["keyframe_poses"].items()}
         return traj

@@ -118,7 +118,8 @@ class MultiProcessRuntime(SavingMixin):
                  keyframe_backlog: Optional[int] = None, catch_up_iterations: Optional[int] = None,
                  checkpoint: Optional[str] = None):
         """threads: torch threads per worker; capacity: frames in the input ring; publish_every: optimiser
-        iterations between mid-step map publications (0 = only after each step); lend_threads: an idle worker's threads go to the busy one;
+        iterations between mid-step map publications (0 = only after each step); lend_threads: an idle worker's
+        threads go to the busy one;
         keyframe_backlog: keyframes that may wait for the mapper before the older ones are merged into the newest
         one's step (None = every keyframe gets a step; the live policy always uses 0); catch_up_iterations: once
         newer keyframes wait, a mapping step ends after this many iterations divided by their number (None = never).

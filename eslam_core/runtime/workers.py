@@ -12,9 +12,9 @@ runs the warm-up, then one mapping step per keyframe (offline policy). When keyf
 `keyframe_backlog` (0 under the live policy; unlimited by default offline), the older waiting ones join the window
 of the newest as its "previous keyframes" instead of getting a step of their own, so the map keeps up with the camera.
 With `catch_up_iterations`, every keyframe keeps its step, but a step ends early once newer keyframes wait, the
-sooner the more of them (`_behind`): the mapper stays within about a keyframe of the tracker. After each step, and
-with `publish_every`, every so many optimiser iterations during a step, it publishes the parameters into the shared map. The
-publishing and the checks for stop / reset / snapshot requests happen in an optimiser post-step hook, so that
+sooner the more of them (`_behind`): the mapper stays within about a keyframe of the tracker. After each step (and,
+with `publish_every`, every so many optimiser iterations during one) it publishes the parameters into the shared map.
+The publishing and the checks for stop / reset / snapshot requests happen in an optimiser post-step hook, so that
 `Mapper.map` knows nothing of them and a long step (the warm-up) still reacts within one iteration.
 
 Cores: each worker owns `threads` torch threads (the machine's cores split between the two). While one worker is
