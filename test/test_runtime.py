@@ -146,6 +146,13 @@ def test_health_of_a_finished_run(runs):
     assert 0 < h.map_publish_ms < 500 and 0 < h.map_read_ms < 500
 
 
+def test_the_tracker_reads_maps_of_finished_steps_only(runs):
+    """A step starts a new Adam that jitters every touched feature in its first iterations: by default the map is
+    published after each step (the warm-up included), never in the middle of one."""
+    figures = runs[2]["rt"].worker_figures()
+    assert figures["mapping_steps"] >= 3 and figures["publishes"] == figures["mapping_steps"]
+
+
 def test_per_stage_profile_of_a_pipelined_run(runs):
     """Every stage of both workers was timed, and the stages account for the workers' time: tracking and the
     mapping step dominate their processes."""
