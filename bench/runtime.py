@@ -34,7 +34,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from eslam_core.cli import open_configured_dataset, parse_frames, parse_overrides  # noqa: E402
-from eslam_core.config import load_config  # noqa: E402
+from eslam_core.config import RuntimeConfig, load_config  # noqa: E402
 from eslam_core.evaluation.trajectory import Trajectory, ate  # noqa: E402
 from eslam_core.runtime import make_runtime  # noqa: E402
 from eslam_core.runtime.shared import stage_profile  # noqa: E402
@@ -180,9 +180,9 @@ def main() -> int:
                          "divided by their number (default: never, every step runs all its iterations as in "
                          "lock-step)")
     ap.add_argument("--no-lend", action="store_true", help="pipelined: an idle worker keeps its threads")
-    ap.add_argument("--publish-every", type=int, default=0,
-                    help="pipelined: mapping iterations between mid-step map publications (default 0: the tracker "
-                         "sees only maps at the end of a step)")
+    ap.add_argument("--publish-every", type=int, default=RuntimeConfig.publish_every,
+                    help="pipelined: mapping iterations between mid-step map publications (default: that of "
+                         "runtime.publish_every, 0 = the tracker sees only maps at the end of a step)")
     ap.add_argument("--repeats", type=int, default=1, help="runs per mode, in alternating order (medians reported)")
     ap.add_argument("--size", default="320x240", help="synthetic room image size (without --data)")
     ap.add_argument("--out", type=Path, default=Path("bench_runtime.json"), help="JSON results file")

@@ -342,8 +342,8 @@ class RuntimeConfig:
     # Pipelined mapper: optimiser iterations between mid-step map publications (0 = only after each step). A step
     # starts a new Adam, whose first iterations move every touched feature by about the learning rate: read
     # mid-step, a converged map is jittered. On ICL played back and forth (4-minute soaks) publishing every 5
-    # iterations left frames 275-277 5-8 cm off in later forward laps, worst lap 1.3-2.1x the first; after each
-    # step only, at most 4.5 cm and 1.15x.
+    # iterations left frames 275-277 5-8 cm off in later forward laps, worst lap 1.3-1.9x the first; after each
+    # step only, at most 4.5 cm and 1.15x (over 20 minutes forward laps still reached 1.5 cm: README, soak).
     publish_every: int = 0
     lend_threads: bool = True  # pipelined: an idle worker's torch threads go to the busy one
     # Pipelined, offline policy: keyframes that may wait for the mapper before the older ones join the newest

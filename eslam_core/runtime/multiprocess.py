@@ -46,7 +46,7 @@ import torch
 import torch.multiprocessing as tmp
 
 from eslam_core.camera import Frame, Intrinsics
-from eslam_core.config import Config
+from eslam_core.config import Config, RuntimeConfig
 from eslam_core.frames import working_images, working_intrinsics
 from eslam_core.slam import SLAM, loaded_trajectory
 from eslam_core.trajectory import TrackedTrajectory
@@ -114,9 +114,9 @@ def semaphore_names(*objects) -> list[str]:
 
 class MultiProcessRuntime(SavingMixin):
     def __init__(self, cfg: Config, intrinsics: Intrinsics, policy: str = "offline", threads: Optional[int] = None,
-                 capacity: int = DEFAULT_CAPACITY, publish_every: int = 0, lend_threads: bool = True,
-                 keyframe_backlog: Optional[int] = None, catch_up_iterations: Optional[int] = None,
-                 checkpoint: Optional[str] = None):
+                 capacity: int = DEFAULT_CAPACITY, publish_every: int = RuntimeConfig.publish_every,
+                 lend_threads: bool = True, keyframe_backlog: Optional[int] = None,
+                 catch_up_iterations: Optional[int] = None, checkpoint: Optional[str] = None):
         """threads: torch threads per worker; capacity: frames in the input ring; publish_every: optimiser
         iterations between mid-step map publications (0 = only after each step); lend_threads: an idle worker's
         threads go to the busy one;

@@ -55,7 +55,7 @@ import torch
 from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from eslam_core.camera import Frame, Intrinsics
-from eslam_core.config import Config
+from eslam_core.config import Config, RuntimeConfig
 from eslam_core.device import peak_memory_mb as device_peak_mb, resolve_device
 from eslam_core.cpu import PeriodicRelease, lower_priority, name_process
 from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics
@@ -189,7 +189,7 @@ class WorkerSetup:
     threads: int
     parent_pid: int
     log_level: int
-    publish_every: int = 0  # optimiser iterations between mid-step map publications (0 = none)
+    publish_every: int = RuntimeConfig.publish_every  # optimiser iterations between mid-step publications (0: none)
     faults: str = ""
     lend_threads: bool = True  # an idle worker's threads go to the busy one (see CoreShare)
     # Keyframes allowed to wait while the mapper maps one; beyond that the older ones join the window of the newest
