@@ -161,9 +161,14 @@ class TrackingConfig:
     photometric_huber: float = 0.05
     photometric_weight: float = 1.0
     pyramid_levels: int = 3
+    # The starting pose from frame-to-frame RGB-D odometry (odometry.py) on images about this many pixels wide,
+    # where it succeeds, instead of the constant-velocity prediction; 0 = constant velocity only (the paper).
+    odometry_width: int = 0
 
     def validate(self, check) -> None:
         check(self.method in ("render", "sdf"), "tracking.method", "must be 'render' or 'sdf'")
+        check(self.odometry_width == 0 or self.odometry_width >= 64, "tracking.odometry_width",
+              "must be 0 (off) or at least 64 pixels (the odometry's image pyramid needs 4 levels)")
         check(self.mode in ("track", "external"), "tracking.mode",
               "must be 'track' or 'external' (poses from external odometry, mapping only)")
         check(self.huber > 0, "tracking.huber", "must be positive (metres)")

@@ -2,8 +2,9 @@
 keyframe.
 
 Prediction: the motion of an external odometry between the last frame and this one when frames carry
-`odom_pose`, else constant velocity (scaled by the time gaps) from the last well-tracked frames, else the last
-pose. Tracking refines the prediction against the map (the paper's rendering tracker or the fast SDF alignment);
+`odom_pose`, else the motion measured by frame-to-frame RGB-D odometry from the last well-tracked frame
+(`tracking.odometry_width`, odometry.py) where it succeeds, else constant velocity (scaled by the time gaps) from the
+last well-tracked frames, else the last pose. Tracking refines the prediction against the map (the paper's rendering tracker or the fast SDF alignment);
 with `tracking.mode: external` the odometry's pose (expressed in the map frame by the first frame) is taken as it
 is. A pose is re-orthonormalised where it is made, and a diverged optimisation keeps the prediction.
 
@@ -34,6 +35,7 @@ from eslam_core.geometry import orthonormalize
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.representation.field import SceneField
+from eslam_core.tracking.odometry import FrameOdometry
 from eslam_core.tracking.quality import (RESIDUAL_WINDOW, Quality, TrackingEvidence, is_lost, tracking_quality,
                                          typical_loss)
 from eslam_core.tracking.render_tracker import constant_velocity, make_tracker, time_ratio
@@ -77,6 +79,9 @@ class TrackingFrontEnd:
         self.unindexed: list = []  # keyframes not in `places` yet (see remember)
         self._loaded_unindexed = False
         self.fallback_pose = np.eye(4)
+        self.odometry = None  # frame-to-frame odometry, its reference the last well-tracked frame
+        if cfg.tracking.odometry_width > 0 and self.tracker is not None:
+            self.odometry = FrameOdometry(intr, cfg.tracking.odometry_width, cfg.camera.max_depth)
         self.places = None  # the keyframes for relocalization (a KeyframeDatabase), when enabled
         if cfg.relocalization.enabled and self.tracker is not None:
             from eslam_core.tracking.relocalization import KeyframeDatabase  # (OpenCV: loaded only when used)
@@ -135,6 +140,8 @@ class TrackingFrontEnd:
         pose0 = pf.gt_pose if pf.gt_pose is not None else np.eye(4)
         self._note_odometry(pf, pose0)
         self.good = [len(trajectory)]
+        if self.odometry is not None:
+            self.odometry.set_reference(len(trajectory), self.odometry.frame(pf.rgb, pf.depth))
         return orthonormalize(pose0)
 
     def _note_odometry(self, pf: PreparedFrame, pose: np.ndarray) -> None:
@@ -144,9 +151,10 @@ class TrackingFrontEnd:
             self.map_from_odom = pose @ np.linalg.inv(pf.odom_pose)
         self.last_odom = pf.odom_pose
 
-    def predict(self, pf: PreparedFrame, trajectory: TrackedTrajectory) -> tuple[np.ndarray, float]:
+    def predict(self, pf: PreparedFrame, trajectory: TrackedTrajectory, odometry_frame=None
+                ) -> tuple[np.ndarray, float]:
         """The predicted pose (from the last well-tracked frames only) and the time since the last of them in
-        units of the usual frame gap."""
+        units of the usual frame gap. `odometry_frame`: this frame prepared for the frame-to-frame odometry."""
         if len(trajectory) == 0:
             return self.fallback_pose, 1.0
         last = self.good[-1] if self.good else len(trajectory) - 1
@@ -159,6 +167,10 @@ class TrackingFrontEnd:
             if self.cfg.tracking.mode == "external":
                 return self.map_from_odom @ pf.odom_pose, gap
             return prev @ np.linalg.inv(self.last_odom) @ pf.odom_pose, gap
+        if odometry_frame is not None and self.odometry.reference_key == last:
+            motion = self.odometry.motion(odometry_frame)
+            if motion is not None:
+                return prev @ motion, gap
         # After a long pause (over MAX_EXTRAPOLATION frame gaps) the velocity says nothing: predict no motion. A
         # camera lost for a few frames keeps the velocity of its last tracked ones: they are the frames before the
         # loss, and a camera that walked on while lost (2.5 cm a frame on the synthetic long room) was otherwise
@@ -168,7 +180,8 @@ class TrackingFrontEnd:
         return constant_velocity(trajectory.pose(self.good[-2]), prev, gap), gap
 
     def track(self, pf: PreparedFrame, view: MapView, trajectory: TrackedTrajectory) -> TrackedPose:
-        predicted, gap = self.predict(pf, trajectory)
+        odometry_frame = self.odometry.frame(pf.rgb, pf.depth) if self.odometry is not None else None
+        predicted, gap = self.predict(pf, trajectory, odometry_frame)
         init = torch.from_numpy(orthonormalize(predicted)).float()
         if self.tracker is None:  # external mode: the odometry's pose, mapping only
             self._note_odometry(pf, init.double().numpy())
@@ -194,7 +207,7 @@ class TrackingFrontEnd:
                                     found is not None or self._prior_holds(pf))
         quality = tracking_quality(evidence, self.cfg.quality)
         return self._decided(len(trajectory), pose, init, result.loss, quality,
-                             None if found is None else found.keyframe_id, pf)
+                             None if found is None else found.keyframe_id, pf, odometry_frame)
 
     def _prior_holds(self, pf: PreparedFrame) -> bool:
         """Whether the prediction of a lost camera is worth refining without a relocalization match: without a
@@ -206,7 +219,8 @@ class TrackingFrontEnd:
         return bool(self.good)
 
     def _decided(self, position: int, pose: torch.Tensor, init: torch.Tensor, loss: float, quality: Quality,
-                 relocalized_from: Optional[int], pf: Optional[PreparedFrame] = None) -> TrackedPose:
+                 relocalized_from: Optional[int], pf: Optional[PreparedFrame] = None,
+                 odometry_frame=None) -> TrackedPose:
         """The tracking state after this frame, and whether it is a keyframe."""
         was_lost = self.lost
         self.lost = is_lost(was_lost, quality, self.cfg.quality) and self.cfg.quality.enabled
@@ -224,6 +238,8 @@ class TrackingFrontEnd:
                 self.recent_losses.append(loss)
             if pf is not None:
                 self._note_odometry(pf, pose.double().numpy())
+            if odometry_frame is not None:
+                self.odometry.set_reference(position, odometry_frame)
             self.since_keyframe += 1
             keyframe = self.since_keyframe >= self.cfg.mapping.every and self.cfg.run.mode == "slam"
             if keyframe:
