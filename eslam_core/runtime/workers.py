@@ -50,6 +50,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
+import cv2
 import numpy as np
 import torch
 from torch.optim.optimizer import register_optimizer_step_post_hook
@@ -279,6 +280,7 @@ def become_worker(name: str, setup: WorkerSetup) -> None:
     name_process(f"eslam-{name}")
     logging.basicConfig(level=setup.log_level, format=f"%(levelname)s eslam.{name}: %(message)s")
     torch.set_num_threads(setup.threads)
+    cv2.setNumThreads(setup.threads)  # OpenCV's pool (odometry, ORB) would otherwise take the other worker's core
     torch.manual_seed(setup.cfg.run.seed)
     load_kernel("plane_lookup")  # build / load the C kernel now rather than inside the first frame's timing
 
