@@ -59,6 +59,12 @@ def test_negative_truncation(tmp_path):
         load_config(write(tmp_path, "model: {truncation: -0.06}\n"))
 
 
+def test_odometry_width_too_small_for_its_pyramid(tmp_path):
+    with pytest.raises(ConfigError, match=r"tracking\.odometry_width.*0 \(off\) or at least 64"):
+        load_config(write(tmp_path, "tracking: {odometry_width: 32}\n"))
+    assert load_config("live").tracking.odometry_width == 160 and load_config("icl").tracking.odometry_width == 0
+
+
 def test_fine_plane_coarser_than_coarse(tmp_path):
     with pytest.raises(ConfigError, match="fine_geometry_resolution.*coarser"):
         load_config(write(tmp_path, "model: {fine_geometry_resolution: 0.5}\n"))
