@@ -1,12 +1,13 @@
 """The tracking front end: the pose of each new frame, how far it can be trusted, and whether it becomes a
 keyframe.
 
-Prediction: the motion of an external odometry between the last frame and this one when frames carry
-`odom_pose`, else the motion measured by frame-to-frame RGB-D odometry from the last well-tracked frame
-(`tracking.odometry_width`, odometry.py) where it succeeds, else constant velocity (scaled by the time gaps) from the
-last well-tracked frames, else the last pose. Tracking refines the prediction against the map (the paper's rendering tracker or the fast SDF alignment);
-with `tracking.mode: external` the odometry's pose (expressed in the map frame by the first frame) is taken as it
-is. A pose is re-orthonormalised where it is made, and a diverged optimisation keeps the prediction.
+Prediction: the motion of an external odometry between the last frame and this one when frames carry `odom_pose`,
+else the motion measured by frame-to-frame RGB-D odometry from the last well-tracked frame
+(`tracking.odometry_width`, odometry.py) where it succeeds, else constant velocity (scaled by the time gaps) from
+the last well-tracked frames, else the last pose. Tracking refines the prediction against the map (the paper's
+rendering tracker or the fast SDF alignment); with `tracking.mode: external` the odometry's pose (expressed in the
+map frame by the first frame) is taken as it is. A pose is re-orthonormalised where it is made, and a diverged
+optimisation keeps the prediction.
 
 Every tracked frame gets a quality from what the tracker measured (quality.py). Below `quality.lost_below` the
 camera is *lost*: the frame makes no keyframe (it is never mapped) and is not the next frame's prediction. While

@@ -7,11 +7,11 @@ constant-velocity prediction is that far off whenever the motion changes: a hand
 missing from the stream (ICL frame 274 -> 275, 1.3 cm and 1.65 degrees in one gap), frames a live tracker skipped,
 the turn at the end of a pass.
 
-Dense RGB-D odometry (OpenCV's `Odometry`: photometric and point-to-plane ICP residuals over an image pyramid) between
-the last well-tracked frame and the new one, on small images, measures that motion directly: on ICL and 7-Scenes
-pairs 1 to 12 frames apart (up to 4.3 cm and 7.3 degrees) it was within 0.1-0.4 cm and 0.4 degrees of the reference
-poses at 160 x 120 pixels, in about 2 ms per frame. OpenCV refuses motions beyond its limits (15 cm, 15 degrees) and
-says when it failed; then the constant-velocity prediction stands.
+Dense RGB-D odometry (OpenCV's `Odometry`: photometric and point-to-plane ICP residuals over an image pyramid)
+between the last well-tracked frame and the new one, on small images, measures that motion directly: on ICL and
+7-Scenes pairs 1 to 12 frames apart (up to 4.3 cm and 7.3 degrees) it was within 0.1-0.4 cm and 0.4 degrees of the
+reference poses at 160 x 120 pixels, in about 5 ms per frame on one core. OpenCV refuses motions beyond its limits
+(15 cm, 15 degrees) and says when it failed; then the constant-velocity prediction stands.
 """
 from __future__ import annotations
 
