@@ -33,7 +33,7 @@ setup(
         "tqdm",
         "matplotlib",
         "rosbags",
-        "opencv-python-headless>=4.8",  # relocalization: ORB features, PnP RANSAC
+        "opencv-python-headless>=5.1",  # relocalization (ORB, PnP RANSAC); cv2.Odometry (OpenCV 5) for tracking
     ],
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],

@@ -40,6 +40,10 @@ class FrameOdometry:
     """The motion of the camera between the last frame it was given as a reference and a new one."""
 
     def __init__(self, intr: Intrinsics, width: int, max_depth: float = 0.0):
+        if not hasattr(cv2, "Odometry"):
+            raise RuntimeError(f"tracking.odometry_width needs OpenCV >= 5.1 (cv2.Odometry), this is OpenCV "
+                               f"{cv2.__version__}: pip install 'opencv-python-headless>=5.1', or set "
+                               f"tracking.odometry_width: 0")
         self.factor = max(1, round(intr.width / width))
         small = intr.scaled(1.0 / self.factor)
         K = np.array([[small.fx, 0, small.cx], [0, small.fy, small.cy], [0, 0, 1]], np.float32)
