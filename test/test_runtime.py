@@ -331,6 +331,11 @@ def _feed_live(rt, room_sequence, n=20):
         rt.submit(room_sequence[i])  # never blocks
         updates += rt.poll()
     assert wait_until(lambda: rt.health().frames_tracked >= 2, 120)
+    # The health's counter is the tracker's; its poses reach this process a moment later (a CI run polled once and
+    # found one of two).
+    deadline = time.monotonic() + 30
+    while len(updates) < 2 and time.monotonic() < deadline:
+        updates += rt.poll(timeout=1.0)
     return updates + rt.poll()
 
 
