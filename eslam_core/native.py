@@ -29,7 +29,7 @@ def cache_dir() -> Path:
     return Path(os.environ.get("ESLAM_CACHE", Path.home() / ".cache" / "eslam"))
 
 
-CFLAGS = ("-O3", "-march=native", "-fopenmp", "-shared", "-fPIC")
+CFLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fopenmp", "-shared", "-fPIC")
 
 
 def cpu_identity() -> str:
@@ -50,7 +50,7 @@ def _compile(src: Path, out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
         tmp_out = Path(tmp) / out.name
-        cmd = [cc, *CFLAGS, "-o", str(tmp_out), str(src)]
+        cmd = [cc, *CFLAGS, "-o", str(tmp_out), str(src), "-lm"]
         res = subprocess.run(cmd, capture_output=True, text=True)
         if res.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr}")
@@ -58,6 +58,11 @@ def _compile(src: Path, out: Path) -> None:
 
 
 _unavailable: dict[str, str] = {}  # kernel name -> why load_kernel returned None
+
+
+def pointer(t) -> ctypes.c_void_p:
+    """A (contiguous, CPU) tensor's data as a C pointer argument; None -> NULL."""
+    return ctypes.c_void_p(None if t is None else t.data_ptr())
 
 
 def library_path(name: str) -> Path:

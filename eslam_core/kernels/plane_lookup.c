@@ -6,6 +6,7 @@
  * the intermediate index / weight tensors a pure-torch version needs.
  */
 #include <stdint.h>
+#include <math.h>
 #include <string.h>
 #ifdef _OPENMP
 #include <omp.h>
@@ -116,10 +117,11 @@ void plane_backward_points(const float *points, int64_t N, const float *table, i
     }
 }
 
-/* grad_table (rows, C): accumulated (+=). Threads own disjoint row ranges, so the scatter needs no atomics. */
+/* grad_table (rows, C): accumulated (+=). Threads own disjoint row ranges, so the scatter needs no atomics.
+ * touched (rows, may be NULL): set to 1 for every row the scatter reaches. */
 void plane_backward_table(const float *points, int64_t N, int64_t rows, int64_t C, int64_t S, const int64_t *sizes,
                           const int64_t *offsets, const float *bmin, const float *ext, const float *grad_out,
-                          float *grad_table, int threads) {
+                          float *grad_table, uint8_t *touched, int threads) {
     #pragma omp parallel num_threads(threads)
     {
         int nt = 1, t = 0;
@@ -138,9 +140,31 @@ void plane_backward_table(const float *points, int64_t N, int64_t rows, int64_t 
                     if (row < lo || row >= hi) continue;
                     float *g = grad_table + row * C;
                     const float w = c.w[j];
+                    if (touched) touched[row] = 1;
                     for (int64_t ch = 0; ch < C; ++ch) g[ch] += w * go[ch];
                 }
             }
+        }
+    }
+}
+
+/* Adam on the listed rows of a (rows, C) table, in torch's arithmetic (its fused CPU Adam, no weight decay):
+ * m += (1 - b1) (g - m), v = b2 v + (1 - b2) g^2, p -= step m / (sqrt(v) / bias2_sqrt + eps), with
+ * step = lr / (1 - b1^t) and bias2_sqrt = sqrt(1 - b2^t). Each listed gradient row is zeroed once used, so the
+ * gradient buffer holds zeros again for the next backward pass. */
+void adam_rows(float *param, float *grad, float *m, float *v, const int64_t *list, int64_t n, int64_t C, float step,
+               float beta1, float beta2, float eps, float bias2_sqrt, int threads) {
+    #pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t k = 0; k < n; ++k) {
+        const int64_t o = list[k] * C;
+        float *p = param + o, *g = grad + o, *mr = m + o, *vr = v + o;
+        #pragma omp simd
+        for (int64_t ch = 0; ch < C; ++ch) {
+            const float gc = g[ch];
+            mr[ch] += (1.f - beta1) * (gc - mr[ch]);
+            vr[ch] = beta2 * vr[ch] + (1.f - beta2) * gc * gc;
+            p[ch] -= step * mr[ch] / (sqrtf(vr[ch]) / bias2_sqrt + eps);
+            g[ch] = 0.f;
         }
     }
 }

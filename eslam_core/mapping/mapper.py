@@ -22,6 +22,7 @@ from eslam_core.representation.field import SceneField
 from eslam_core.frames import border_mask
 from eslam_core.geometry import params_to_pose, pose_to_params
 from eslam_core.mapping.keyframes import Keyframe
+from eslam_core.mapping.plane_adam import RowSparseAdam
 from eslam_core.rendering.losses import eslam_losses
 from eslam_core.rendering.volume import render_rays
 
@@ -38,6 +39,7 @@ class Mapper:
         self.dirs_cam = dirs_cam  # on the field's device once mapping starts (see _on)
         self.width = width
         self.border = border_mask(height, width, cfg.mapping.border).reshape(-1)  # host: pixels are drawn there
+        self.plane_adam = RowSparseAdam(betas=(0.9, 0.999))
 
     def _on(self, device: torch.device) -> None:
         if self.dirs_cam.device != device:
@@ -72,12 +74,25 @@ class Mapper:
         free = [i for i in window if optimise_poses and i != oldest]
         poses = {i: keyframes[i].pose.to(device) for i in window}
         pose_params = {i: [p.requires_grad_(True) for p in pose_to_params(poses[i])] for i in free}
-        groups = [{"params": field.decoder_parameters(), "lr": mc.lr_decoders * lr_factor},
-                  {"params": field.plane_parameters(), "lr": mc.lr_planes * lr_factor}]
+        groups = [{"params": field.decoder_parameters(), "lr": mc.lr_decoders * lr_factor}]
         if pose_params:
             groups.append({"params": [p for tq in pose_params.values() for p in tq], "lr": mc.lr_poses})
-        # The fused kernel does the whole update in one pass over the millions of plane values (~8x faster on CPU).
+        planes = [field.geometry_planes, field.appearance_planes]
+        # With the C kernel the planes get the row-sparse Adam (same result, cost of the window, not of the map);
+        # otherwise a dense Adam whose fused kernel does the update in one pass (~8x faster on CPU than the loop).
+        sparse = all(p.kernel() is not None for p in planes)
+        if not sparse:
+            groups.append({"params": field.plane_parameters(), "lr": mc.lr_planes * lr_factor})
         optim = torch.optim.Adam(groups, betas=(0.9, 0.999), fused=True)
+        with self.plane_adam.fresh(planes if sparse else [], mc.lr_planes * lr_factor):
+            last_loss = self._iterate(field, keyframes, window, poses, pose_params, iterations, optim, stop_early)
+        refined = {i: params_to_pose(*pose_params[i]).detach().cpu() for i in free}
+        return MappingResult(float("nan") if last_loss is None else float(last_loss), refined)
+
+    def _iterate(self, field: SceneField, keyframes, window: list[int], poses: dict, pose_params: dict,
+                 iterations: int, optim: torch.optim.Optimizer, stop_early) -> Optional[torch.Tensor]:
+        """The step's iterations; returns the last loss (None if none ran)."""
+        mc, device = self.cfg.mapping, field.device
         per_frame = max(1, mc.rays // len(window))
         last_loss = None
         for it in range(iterations):
@@ -113,6 +128,6 @@ class Mapper:
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
+            self.plane_adam.step()
             last_loss = loss.detach()
-        refined = {i: params_to_pose(*pose_params[i]).detach().cpu() for i in free}
-        return MappingResult(float("nan") if last_loss is None else float(last_loss), refined)
+        return last_loss

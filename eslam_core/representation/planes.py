@@ -10,6 +10,9 @@ kernel (kernels/plane_lookup.c) whose backward gives the gradients of the table 
 tracking needs). `reference_lookup` is the same computation in plain torch (an `embedding_bag` over bags of 3 planes
 x 4 bilinear corners): the fallback without a C compiler, the reference the kernel is tested against, and the path
 on a GPU (the kernel serves CPU tensors only).
+
+With the kernel, the table's gradient can go to `row_gradients` (a buffer and the rows it reached) instead of
+autograd's `.grad`: mapping's row-sparse Adam (mapping/plane_adam.py) updates only those rows.
 """
 from __future__ import annotations
 
@@ -22,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from eslam_core.native import load_kernel
+from eslam_core.native import load_kernel, pointer
 
 PLANE_AXES = ((0, 1), (0, 2), (1, 2))  # xy, xz, yz: (column axis, row axis) of each plane
 
@@ -90,23 +93,28 @@ def reference_lookup(points: torch.Tensor, table: torch.Tensor, bound_min: torch
     return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum").reshape(len(points), -1)
 
 
-def _ptr(t: torch.Tensor) -> ctypes.c_void_p:
-    return ctypes.c_void_p(t.data_ptr())
+@dataclass
+class RowGradients:
+    """Where the kernel's backward pass accumulates a table's gradient instead of autograd's `.grad`: `grad`
+    (rows, channels), added to, and `touched` (rows,) uint8, set to 1 on every row the gradient reached."""
+
+    grad: torch.Tensor
+    touched: torch.Tensor
 
 
 class _FusedLookup(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, points, table, sizes, offsets, bound_min, bound_extent, lib):
+    def forward(ctx, points, table, sizes, offsets, bound_min, bound_extent, lib, sink):
         points = points.contiguous()
         n, channels = len(points), table.shape[1]
         scales = len(sizes) // 3
         out = torch.empty(n, scales * channels)
         threads = torch.get_num_threads()
-        lib.plane_forward(_ptr(points), ctypes.c_int64(n), _ptr(table), ctypes.c_int64(channels),
-                          ctypes.c_int64(scales), _ptr(sizes), _ptr(offsets), _ptr(bound_min), _ptr(bound_extent),
-                          _ptr(out), ctypes.c_int(threads))
+        lib.plane_forward(pointer(points), ctypes.c_int64(n), pointer(table), ctypes.c_int64(channels),
+                          ctypes.c_int64(scales), pointer(sizes), pointer(offsets), pointer(bound_min),
+                          pointer(bound_extent), pointer(out), ctypes.c_int(threads))
         ctx.save_for_backward(points, table, sizes, offsets, bound_min, bound_extent)
-        ctx.lib = lib
+        ctx.lib, ctx.sink = lib, sink
         return out
 
     @staticmethod
@@ -116,18 +124,21 @@ class _FusedLookup(torch.autograd.Function):
         n, channels = len(points), table.shape[1]
         scales = len(sizes) // 3
         threads = ctypes.c_int(torch.get_num_threads())
-        common = (ctypes.c_int64(scales), _ptr(sizes), _ptr(offsets), _ptr(bound_min), _ptr(bound_extent),
-                  _ptr(grad_out))
+        common = (ctypes.c_int64(scales), pointer(sizes), pointer(offsets), pointer(bound_min),
+                  pointer(bound_extent), pointer(grad_out))
         grad_points = grad_table = None
         if ctx.needs_input_grad[0]:
             grad_points = torch.zeros_like(points)
-            ctx.lib.plane_backward_points(_ptr(points), ctypes.c_int64(n), _ptr(table), ctypes.c_int64(channels),
-                                          *common, _ptr(grad_points), threads)
-        if ctx.needs_input_grad[1]:
-            grad_table = torch.zeros_like(table)
-            ctx.lib.plane_backward_table(_ptr(points), ctypes.c_int64(n), ctypes.c_int64(table.shape[0]),
-                                         ctypes.c_int64(channels), *common, _ptr(grad_table), threads)
-        return grad_points, grad_table, None, None, None, None, None
+            ctx.lib.plane_backward_points(pointer(points), ctypes.c_int64(n), pointer(table),
+                                          ctypes.c_int64(channels), *common, pointer(grad_points), threads)
+        if ctx.needs_input_grad[1]:  # into autograd's gradient, or added to the row gradients attached
+            sink = ctx.sink
+            target = torch.zeros_like(table) if sink is None else sink.grad
+            ctx.lib.plane_backward_table(pointer(points), ctypes.c_int64(n), ctypes.c_int64(table.shape[0]),
+                                         ctypes.c_int64(channels), *common, pointer(target),
+                                         pointer(None if sink is None else sink.touched), threads)
+            grad_table = target if sink is None else None
+        return grad_points, grad_table, None, None, None, None, None, None
 
 
 class FeaturePlanes(nn.Module):
@@ -151,6 +162,7 @@ class FeaturePlanes(nn.Module):
         self._sizes = torch.tensor([v for n in self.layout.sizes for v in n], dtype=torch.int64)
         self._offsets = torch.tensor([v for o in self.layout.offsets for v in o], dtype=torch.int64)
         self.use_native = True
+        self.row_gradients: RowGradients | None = None  # set by mapping's row-sparse Adam while it runs
 
     @property
     def out_dim(self) -> int:
@@ -160,6 +172,13 @@ class FeaturePlanes(nn.Module):
         """(N, 3) world points -> (N, scales * channels) features."""
         return self.lookup(points, self.table)
 
+    def kernel(self) -> ctypes.CDLL | None:
+        """The C kernel library when lookups on this table run in it (CPU, float32, kernel built), else None."""
+        table = self.table
+        if not (self.use_native and table.device.type == "cpu" and table.dtype == torch.float32):
+            return None
+        return load_kernel("plane_lookup")
+
     def lookup(self, points: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
         """The lookup on any table of this layout (rows, any number of channels): (N, scales * table channels)."""
         native = self.use_native and points.device.type == "cpu" and table.device.type == "cpu" and \
@@ -167,7 +186,9 @@ class FeaturePlanes(nn.Module):
         lib = load_kernel("plane_lookup") if native else None
         if lib is None:
             return reference_lookup(points, table, self.bound_min, self.bound_extent, self.layout, self.grid_sizes)
-        return _FusedLookup.apply(points, table, self._sizes, self._offsets, self.bound_min, self.bound_extent, lib)
+        sink = self.row_gradients if table is self.table else None
+        return _FusedLookup.apply(points, table, self._sizes, self._offsets, self.bound_min, self.bound_extent, lib,
+                                  sink)
 
     def project(self, weight: torch.Tensor) -> torch.Tensor:
         """The table with each scale's rows multiplied by that scale's block of `weight` (out, scales * channels),
