@@ -34,6 +34,10 @@ def estimate_bound(depth: np.ndarray, intr: Intrinsics, pose: np.ndarray, margin
 def outside_mask(points: torch.Tensor, bound: np.ndarray) -> torch.Tensor:
     """(N,) bool: the point lies outside the axis-aligned bound (2, 3)."""
     lo, hi = (torch.as_tensor(b, dtype=points.dtype, device=points.device) for b in bound)
+    if len(points) > 0:  # usually all inside: one pass for the box of the points instead of six comparisons
+        low, high = torch.aminmax(points, dim=0)
+        if bool((low >= lo).all() & (high <= hi).all()):
+            return torch.zeros(len(points), dtype=torch.bool, device=points.device)
     return ((points < lo) | (points > hi)).any(-1)
 
 

@@ -114,7 +114,10 @@ class SceneMap:
         usable[with_depth[outside]] = False
         kf.usable = usable.reshape(kf.usable.shape)
         self._count_outside(int(outside.sum()), len(points), kf.frame_index)
-        sample = points[~outside][torch.randint(int((~outside).sum()), (500,))] if (~outside).any() else None
+        inside = torch.nonzero(~outside).squeeze(1) if outside.any() else None  # None: all of them
+        n_inside = len(points) if inside is None else len(inside)
+        drawn = torch.randint(n_inside, (500,)) if n_inside else None
+        sample = None if drawn is None else points[drawn if inside is None else inside[drawn]]
         self.keyframes.append(kf, self.intr, sample)
         # Observed space takes every 2nd pixel along both axes (as surface_points' default), from the same points.
         on_grid = every_second_pixel(*kf.usable.shape)[with_depth] & usable[with_depth]
