@@ -214,10 +214,10 @@ def test_every_lifecycle_transition_keeps_the_map_until_cleanup_saves_it(ros, ro
         assert _until(lambda: status and "inactive" in status[-1].status[0].message, 10.0)
 
         assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
-        assert _until(camera.matched, 10.0)
+        assert _until(lambda: camera.matched() and node.ready(), 10.0)  # both ends see each other
         for i in range(4):
             camera.publish(i, stamps[i])
-        assert _until(lambda: len(poses) == 4, 120.0), node.health()
+        assert _until(lambda: len(poses) == 4, 120.0), (len(poses), node.health())
         runtime = node.runtime
 
         assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
@@ -228,10 +228,10 @@ def test_every_lifecycle_transition_keeps_the_map_until_cleanup_saves_it(ros, ro
         assert node.pipeline.pairs == 4
 
         assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
-        assert _until(camera.matched, 10.0)
+        assert _until(lambda: camera.matched() and node.ready(), 10.0)
         for i in range(5, 9):
             camera.publish(i, stamps[i])
-        assert _until(lambda: len(poses) == 8, 120.0), node.health()
+        assert _until(lambda: len(poses) == 8, 120.0), (len(poses), node.health())
         timestamps, _ = node.runtime.trajectory()
         assert node.runtime is runtime and len(timestamps) == 8  # the same map went on
         np.testing.assert_allclose(timestamps, np.delete(stamps, 4), atol=1e-6)
