@@ -38,6 +38,7 @@ from eslam_core.geometry import params_to_pose, pose_to_params  # noqa: E402
 from eslam_core.mapping.keyframes import Keyframe  # noqa: E402
 from eslam_core.rendering.losses import eslam_losses  # noqa: E402
 from eslam_core.mapping.mapper import Mapper  # noqa: E402
+from eslam_core.mapping.plane_adam import RowSparseAdam  # noqa: E402
 from eslam_core.rendering.volume import alpha_from_sdf, render_weights, sample_depths  # noqa: E402
 from eslam_core.slam import SLAM  # noqa: E402
 from eslam_core.tracking.render_tracker import make_tracker  # noqa: E402
@@ -58,9 +59,10 @@ class Stopwatch:
         self.t = now
 
 
-def staged_iteration(field, origins, dirs, d_gt, rgb_gt, cfg, weights, optim) -> dict:
+def staged_iteration(field, origins, dirs, d_gt, rgb_gt, cfg, weights, optim, plane_adam=None) -> dict:
     """One optimisation iteration, the same computation as rendering.render_rays + losses, timed by stage. With a
-    FrozenField (tracking), "lookup" is the lookup on the planes folded with the decoders' first layer."""
+    FrozenField (tracking), "lookup" is the lookup on the planes folded with the decoders' first layer. With
+    `plane_adam` (mapping with the C kernel, as mapper.py), the planes' rows are stepped by it."""
     sw = Stopwatch()
     z = sample_depths(field, origins.detach(), dirs.detach(), d_gt, cfg.render, cfg.model.truncation)
     pts = (origins[:, None, :] + z[..., None] * dirs[:, None, :]).reshape(-1, 3)
@@ -86,6 +88,8 @@ def staged_iteration(field, origins, dirs, d_gt, rgb_gt, cfg, weights, optim) ->
     loss.backward()
     sw.lap("backward")
     optim.step()
+    if plane_adam is not None:
+        plane_adam.step()
     sw.lap("step")
     return sw.times
 
@@ -97,13 +101,16 @@ def median_stages(samples: list[dict]) -> dict:
 
 
 @denormals_flushed()  # as tracking and mapping run
-def iteration_benchmark(cfg, ds, repeats: int, native: bool) -> dict:
-    """Median tracking and mapping iteration times on a map warmed up on the first frames."""
+def iteration_benchmark(cfg, ds, repeats: int, native: bool, grow: float = 0.0) -> dict:
+    """Median tracking and mapping iteration times on a map warmed up on the first frames (its extent then grown
+    by `grow` metres on every side: a larger map, the same rays)."""
     torch.manual_seed(0)
     slam = SLAM(cfg, ds.intrinsics)
     cfg.mapping.first_iterations, keep = 30, cfg.mapping.first_iterations
     slam.step(ds[0])
     cfg.mapping.first_iterations = keep
+    if grow > 0:
+        slam.map.grow(slam.map.extent + np.array([[-grow] * 3, [grow] * 3]))
     field = slam.map.field
     for planes in (field.geometry_planes, field.appearance_planes):
         planes.use_native = native
@@ -152,23 +159,29 @@ def iteration_benchmark(cfg, ds, repeats: int, native: bool) -> dict:
     # Window poses are optimised too when the preset does (the oldest one anchors the gauge), as in mapping.py.
     pose_params = [[p.requires_grad_(True) for p in pose_to_params(kf.pose)] for kf in kfs[1:]] \
         if cfg.mapping.joint_poses else []
-    groups = [{"params": field.decoder_parameters(), "lr": 1e-3}, {"params": field.plane_parameters(), "lr": 5e-3}]
+    planes = [field.geometry_planes, field.appearance_planes]
+    sparse = native and all(p.kernel() is not None for p in planes)  # as mapper.py: row-sparse Adam on the planes
+    groups = [{"params": field.decoder_parameters(), "lr": 1e-3}]
+    if not sparse:
+        groups.append({"params": field.plane_parameters(), "lr": 5e-3})
     if pose_params:
         groups.append({"params": [p for tq in pose_params for p in tq], "lr": 1e-3})
-    optim = torch.optim.Adam(groups, fused=True)  # as in mapping.py
+    optim = torch.optim.Adam(groups, fused=True)
+    plane_adam = RowSparseAdam()
     mapping = []
     per = cfg.mapping.rays // len(kfs)
-    for _ in range(repeats + 1):
-        o, d, dg, cg = [], [], [], []
-        for k, kf in enumerate(kfs):
-            pix = mapper._pixels(kf, per)
-            c2w = params_to_pose(*pose_params[k - 1]) if pose_params and k > 0 else kf.pose
-            d.append(dirs_cam[pix] @ c2w[:3, :3].T)
-            o.append(c2w[:3, 3].expand(len(pix), 3))
-            dg.append(kf.depths(pix))
-            cg.append(kf.colors(pix))
-        mapping.append(staged_iteration(field, torch.cat(o), torch.cat(d), torch.cat(dg), torch.cat(cg), cfg,
-                                         cfg.mapping.weights, optim))
+    with plane_adam.fresh(planes if sparse else [], lr=5e-3):
+        for _ in range(repeats + 1):
+            o, d, dg, cg = [], [], [], []
+            for k, kf in enumerate(kfs):
+                pix = mapper._pixels(kf, per)
+                c2w = params_to_pose(*pose_params[k - 1]) if pose_params and k > 0 else kf.pose
+                d.append(dirs_cam[pix] @ c2w[:3, :3].T)
+                o.append(c2w[:3, 3].expand(len(pix), 3))
+                dg.append(kf.depths(pix))
+                cg.append(kf.colors(pix))
+            mapping.append(staged_iteration(field, torch.cat(o), torch.cat(d), torch.cat(dg), torch.cat(cg), cfg,
+                                             cfg.mapping.weights, optim, plane_adam if sparse else None))
     params = field.parameter_count()
     return {"tracking": median_stages(track[1:]), "mapping": median_stages(mapping[1:]),
             "tracking_frame_s": statistics.median(track_frame[1:]) if track_frame else None, "fold_s": fold_s,
@@ -204,6 +217,8 @@ def main() -> int:
     ap.add_argument("--presets", default="icl,fast", help="comma-separated presets to measure")
     ap.add_argument("--repeats", type=int, default=5, help="iterations per median")
     ap.add_argument("--frames", type=int, default=40, help="frames per whole run (0 = skip whole runs)")
+    ap.add_argument("--grow", type=float, default=0.0, metavar="METRES",
+                    help="iterations on the map grown by this much on every side (same rays, more plane rows)")
     ap.add_argument("--workers", default="1", help="comma-separated worker counts for whole runs, e.g. 1,2")
     ap.add_argument("--out", type=Path, default=Path("bench_speed.json"))
     args = ap.parse_args()
@@ -220,8 +235,10 @@ def main() -> int:
     for preset in args.presets.split(","):
         cfg = load_config(preset, {"dataset": {"kind": kind}})
         ds = open_dataset(args.data, cfg.dataset.kind, depth_scale=cfg.camera.depth_scale)
-        r = {"native": iteration_benchmark(load_config(preset, {"dataset": {"kind": kind}}), ds, args.repeats, True),
-             "torch": iteration_benchmark(load_config(preset, {"dataset": {"kind": kind}}), ds, args.repeats, False)}
+        r = {"native": iteration_benchmark(load_config(preset, {"dataset": {"kind": kind}}), ds, args.repeats, True,
+                                           args.grow),
+             "torch": iteration_benchmark(load_config(preset, {"dataset": {"kind": kind}}), ds, args.repeats, False,
+                                          args.grow)}
         r["runs"] = [whole_run(preset, args.data, kind, args.frames, ["--workers", w] if w != "1" else [])
                      for w in args.workers.split(",")] if args.frames else []
         results["presets"][preset] = r
