@@ -145,7 +145,8 @@ def iteration_benchmark(cfg, ds, repeats: int, native: bool, grow: float = 0.0) 
         tracker = make_tracker(cfg, dirs_cam, intr)
         for _ in range(repeats + 1):
             t0 = time.perf_counter()
-            tracker.track(field, frame, pose, observed=slam.map.observed, keyframe=slam.map.newest_keyframe())
+            tracker.track(field, frame, pose, observed=slam.map.observed, keyframe=slam.map.newest_keyframe(),
+                          map_version=slam.map.version)  # folded once: the map changes once per mapping step
             track_frame.append(time.perf_counter() - t0)
 
     # Mapping: planes, decoders and poses of a window of keyframes spread over the sequence (rays from different

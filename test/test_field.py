@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from eslam_core.config import load_config
-from eslam_core.representation.field import FrozenField, SceneField
+from eslam_core.representation.field import FoldedMap, FrozenField, SceneField
 from eslam_core.native import load_kernel
 
 BOUND = np.array([[-1.0, -0.5, -0.3], [1.4, 1.42, 0.9]])
@@ -44,3 +44,21 @@ def test_frozen_field_sends_no_gradient_into_the_map(field):
     fixed = FrozenField(field)
     (fixed.sdf(x).sum() + fixed.color(x).sum()).backward()
     assert x.grad is not None and all(p.grad is None for p in field.parameters())
+
+
+def test_a_folded_map_is_kept_while_the_map_version_stays_and_refolded_when_it_changes(field):
+    folded = FoldedMap()
+    points = torch.tensor([[0.1, 0.2, 0.3], [-0.4, 0.9, 0.0]])
+    first = folded.of(field, 1)
+    before = first.sdf(points)
+    assert folded.of(field, 1) is first  # the same map version: no second pass over the planes
+    with torch.no_grad():
+        field.geometry_planes.table.add_(0.05)  # mapping changed the map ...
+    torch.testing.assert_close(folded.of(field, 1).sdf(points), before)  # ... unseen while its version is the same
+    changed = folded.of(field, 2)
+    assert changed is not first
+    torch.testing.assert_close(changed.sdf(points), field.sdf(points), atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(changed.sdf(points), before)
+    other = SceneField(BOUND, load_config("replica").model)
+    assert folded.of(other, 2) is not changed  # another field (a grown map) at the same version number
+    assert folded.of(other, None) is not folded.of(other, None)  # no version: folded afresh each time

@@ -76,6 +76,7 @@ class SceneMap:
         self.rng = np.random.default_rng(cfg.run.seed)
         self.extent: Optional[np.ndarray] = None
         self.field: Optional[SceneField] = None
+        self.version = 0  # of the field's values: counts the changes (trackers keep what they derive from one)
         self.observed: Optional[ObservedSurfaces] = None
         self.growths = 0
         self.points_outside = 0  # keyframe depth points the map could not cover (outside the bound / max extent)
@@ -94,6 +95,7 @@ class SceneMap:
     def start(self, extent: np.ndarray) -> None:
         self.extent = np.asarray(extent, dtype=np.float64)
         self.field = SceneField(self.extent, self.cfg.model, self.device)
+        self.version += 1
         self.observed = ObservedSurfaces(self.extent, self.cfg.model.truncation, self.device)
         log.info("map: %d parameters (%.1f MB) over %s", self.field.parameter_count(), self.field.nbytes() / 2**20,
                  np.round(self.extent, 3).tolist())
@@ -143,6 +145,7 @@ class SceneMap:
         """A new, larger field over `extent` holding the current features (a new object: see the module docs)."""
         self.extent = np.asarray(extent, dtype=np.float64)
         self.field = self.field.grown(self.extent)
+        self.version += 1
         self.observed.grow(self.extent)
         self.growths += 1
 
@@ -173,6 +176,7 @@ class SceneMap:
     def warm_up(self) -> MappingStep:
         """The first keyframe mapped alone, pose fixed, for `mapping.first_iterations` (paper Sec. 3.4)."""
         res = self.mapper.map(self.field, self.keyframes, [0], first=True)
+        self.version += 1
         self.observed.mapped(1)
         return MappingStep(res.loss, {})
 
@@ -190,6 +194,7 @@ class SceneMap:
         optimise_poses = mc.joint_poses and self.keyframes.made > mc.joint_poses_after
         res = self.mapper.map(self.field, self.keyframes, window, first=False, optimise_poses=optimise_poses,
                               stop_early=stop_early)
+        self.version += 1
         refined = {}
         for i, pose in res.refined.items():
             self.keyframes[i].pose = pose.float()
@@ -238,6 +243,7 @@ class SceneMap:
         if state["field"] is not None:
             self.start(state["extent"].numpy())
             self.field.load_state_dict(state["field"])
+            self.version += 1
         self.keyframes.replace_all([Keyframe(**kf) for kf in state["keyframes"]])
         self.keyframes.made = max(self.keyframes.made, state["keyframes_made"])
         if self.observed is not None:

@@ -142,3 +142,21 @@ class FrozenField:
 
     def color(self, points: torch.Tensor) -> torch.Tensor:
         return self.decode("color", self.first_layer("color", points))
+
+
+class FoldedMap:
+    """A tracker's FrozenField of the map, kept from frame to frame while the map's version stays the same: folding
+    costs a pass over every plane row (0.8 ms a frame on a 9 MB map, 12 ms on a 75 MB one, one core), tracking a
+    frame reads a few thousand rows, and the map changes once per mapping step, not per frame."""
+
+    def __init__(self):
+        self._of: tuple = (None, None)  # (field, version) of `_frozen`
+        self._frozen: FrozenField | None = None
+
+    def of(self, field: SceneField, version: int | None) -> FrozenField:
+        """The FrozenField of `field` at `version` (None: unknown, folded afresh)."""
+        held, held_version = self._of
+        if version is None or held is not field or held_version != version or self._frozen is None:
+            self._frozen = FrozenField(field)
+            self._of = (field, version) if version is not None else (None, None)
+        return self._frozen

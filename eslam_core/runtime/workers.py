@@ -352,6 +352,7 @@ class MapReplica:
         self.device = resolve_device(cfg.run.device)  # the mapper's map lives there too
         self.extent: Optional[np.ndarray] = None
         self.field: Optional[SceneField] = None
+        self.version = 0  # of the field's values: counts the changes (new fields, versions copied in)
         self.observed: Optional[ObservedSurfaces] = None
         self.newest: Optional[Keyframe] = None
 
@@ -362,6 +363,7 @@ class MapReplica:
     def start(self, extent: np.ndarray) -> None:
         self.extent = extent
         self.field = SceneField(extent, self.cfg.model, self.device)
+        self.version += 1
         self.observed = ObservedSurfaces(extent, self.cfg.model.truncation, self.device)
 
     def attach(self, extent: np.ndarray) -> None:
@@ -369,7 +371,15 @@ class MapReplica:
         if not np.array_equal(extent, self.extent):
             self.extent = np.asarray(extent)
             self.field = SceneField(self.extent, self.cfg.model, self.device)
+            self.version += 1
             self.observed.grow(self.extent)
+
+    def refresh(self, shared: SharedMap, known: Optional[int]) -> Optional[int]:
+        """Copy the shared map into the field if it holds a version newer than `known`; that version, or None."""
+        version = shared.read_into(self.field, known)
+        if version is not None:
+            self.version += 1
+        return version
 
     def add_keyframe(self, kf: Keyframe) -> None:
         self.newest = kf
@@ -490,7 +500,7 @@ class TrackerWorker:
             self.cores.update()
 
     def _refresh_map(self) -> None:
-        version = self.map.read_into(self.replica.field, self.map_version)
+        version = self.replica.refresh(self.map, self.map_version)
         if version is not None:
             self.replica.observed.mapped(self.map.mapped)
             log.debug("tracker: map version %d (%.1f ms to copy in)", version, 1000 * self.map.read_seconds)

@@ -50,6 +50,7 @@ MAX_UNINDEXED = 2  # new keyframes waiting for relocalization features (see Trac
 
 class MapView(Protocol):
     field: Optional[SceneField]
+    version: int  # changes whenever the field's values change
     extent: Optional[np.ndarray]
     observed: Optional[ObservedSurfaces]
 
@@ -195,7 +196,8 @@ class TrackingFrontEnd:
             if found is not None:
                 init = torch.from_numpy(orthonormalize(found.pose)).float()
         # (The extent test uses the starting pose: a few centimetres off at most, and it saves a second pass.)
-        result = self.tracker.track(view.field, pf, init, view.extent, view.observed.space, view.newest_keyframe())
+        result = self.tracker.track(view.field, pf, init, view.extent, view.observed.space, view.newest_keyframe(),
+                                    view.version)
         pose = result.pose
         if not torch.isfinite(pose).all():  # a diverged optimisation must not poison the trajectory and the map
             log.warning("frame %d: tracking diverged (non-finite pose); keeping the motion model's prediction",

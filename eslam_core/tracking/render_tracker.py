@@ -18,7 +18,7 @@ import torch
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
 from eslam_core.cpu import denormals_flushed
-from eslam_core.representation.field import FrozenField, SceneField
+from eslam_core.representation.field import FoldedMap, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
 from eslam_core.geometry import depth_points_world, params_to_pose, pose_to_params, rays_to_world, scale_motion
 from eslam_core.mapping.extent import outside_mask
@@ -92,6 +92,7 @@ class Tracker:
         self.cfg = cfg
         self.dirs_cam = dirs_cam  # (H*W, 3)
         self.border = border_mask(height, width, cfg.tracking.border).reshape(-1)
+        self._folded = FoldedMap()
 
     def _on(self, device: torch.device) -> None:
         """Keep the per-camera tables on the map's device (moved once)."""
@@ -101,11 +102,12 @@ class Tracker:
     @denormals_flushed()  # see cpu.py
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
               extent: np.ndarray | None = None, observed: ObservedSpace | None = None,
-              keyframe: Keyframe | None = None) -> TrackingResult:
+              keyframe: Keyframe | None = None, map_version: int | None = None) -> TrackingResult:
         """Rays are drawn from pixels whose depth point lies in `extent` (the map's) at the starting pose, from a
         pool of 8 x `tracking.rays` of them; `observed` restricts the rays with `tracking.observed_only`
         (otherwise, as in the paper and the official code, any pixel with depth may be drawn); `keyframe` is not
-        used. Inputs and the result are host tensors; the work runs on the field's device."""
+        used; `map_version` changes whenever the field's values do (None: unknown). Inputs and the result are host
+        tensors; the work runs on the field's device."""
         tc = self.cfg.tracking
         device = field.device
         self._on(device)
@@ -129,7 +131,7 @@ class Tracker:
         best_pose = start.clone()
         best_loss = torch.full((), float("inf"), device=device)
         best_inliers = torch.full((), float("nan"), device=device)
-        fixed = FrozenField(field)  # the map does not change while tracking
+        fixed = self._folded.of(field, map_version)  # the map does not change while tracking
         no_rays = torch.zeros(0, dtype=torch.long, device=device)  # without depth: every candidate pixel has depth
         for _ in range(tc.iterations):
             pix = candidates[torch.randint(len(candidates), (tc.rays,), device=device)]

@@ -31,7 +31,7 @@ import torch
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
 from eslam_core.cpu import denormals_flushed
-from eslam_core.representation.field import FrozenField, RadianceField, SceneField
+from eslam_core.representation.field import FoldedMap, RadianceField, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
 from eslam_core.geometry import depth_points_world, so3_exp
 from eslam_core.mapping.keyframes import Keyframe
@@ -96,6 +96,7 @@ class SDFTracker:
         self.intr = intr
         self.border = border_mask(intr.height, intr.width, cfg.tracking.border).reshape(-1)
         self._reference: Reference | None = None
+        self._folded = FoldedMap()
 
     def _on(self, device: torch.device) -> None:
         """Keep the per-camera tables on the map's device (moved once)."""
@@ -119,11 +120,11 @@ class SDFTracker:
     @denormals_flushed()  # see cpu.py
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
               extent: np.ndarray | None = None, observed: ObservedSpace | None = None,
-              keyframe: Keyframe | None = None) -> TrackingResult:
+              keyframe: Keyframe | None = None, map_version: int | None = None) -> TrackingResult:
         """Align the frame's depth points inside `extent` (the map's, at the starting pose) to the map (SDF and,
         with `color_weight`, the map's colour) and, with `photometric_weight`, to the images of `keyframe`
-        (normally the newest keyframe). Inputs and the result are host tensors; the work runs on the field's
-        device."""
+        (normally the newest keyframe). `map_version`: changes whenever the field's values do (None: unknown).
+        Inputs and the result are host tensors; the work runs on the field's device."""
         tc, T = self.cfg.tracking, self.cfg.model.truncation
         device = field.device
         self._on(device)
@@ -146,7 +147,7 @@ class SDFTracker:
         R, t = start[:3, :3].double(), start[:3, 3].double()
         used = photo_used = None  # the points scored, fixed at the initial pose so that costs compare
         best_cost, best_Rt, inliers = float("inf"), None, 0.0
-        fixed = FrozenField(field)  # the map does not change while tracking
+        fixed = self._folded.of(field, map_version)  # the map does not change while tracking
         for it in range(tc.iterations + 1):  # the last pass only scores the final pose
             x = p_cam @ R.T + t
             last = it == tc.iterations
