@@ -95,6 +95,7 @@ class SDFTracker:
         self.dirs_cam = dirs_cam
         self.intr = intr
         self.border = border_mask(intr.height, intr.width, cfg.tracking.border).reshape(-1)
+        self.border_pixels = max(int(self.border.sum()), 1)
         self._reference: Reference | None = None
         self._folded = FoldedMap()
 
@@ -133,7 +134,7 @@ class SDFTracker:
         candidates = torch.nonzero(self.border & (depth > 0)).squeeze(1)
         pix, inside = draw_in_extent(candidates, min(tc.rays, len(candidates)), lambda pix: depth_points_world(
             self.dirs_cam[pix], depth[pix], start), extent)
-        depth_fraction = len(candidates) * inside / max(int(self.border.sum()), 1)
+        depth_fraction = len(candidates) * inside / self.border_pixels
         if len(pix) < 50 or tc.iterations == 0:
             return TrackingResult(init_pose.clone(), float("nan"), len(pix), depth_fraction)
         p_cam = (self.dirs_cam[pix] * depth[pix, None]).double()
