@@ -164,6 +164,11 @@ class FeaturePlanes(nn.Module):
         self.use_native = True
         self.row_gradients: RowGradients | None = None  # set by mapping's row-sparse Adam while it runs
 
+    def __getstate__(self):
+        # An optimiser's working buffers, not part of the map: a snapshot taken in the middle of a mapping step
+        # (the mesh's, a checkpoint's) leaves them out.
+        return {**super().__getstate__(), "row_gradients": None}
+
     @property
     def out_dim(self) -> int:
         return self.channels * len(self.resolutions)
