@@ -51,7 +51,7 @@ class RowSparseAdam:
 
     @contextmanager
     def fresh(self, planes: list[FeaturePlanes], lr: float):
-        kept = {id(s.planes): s for s in self._states if s.planes.table.shape == s.exp_avg.shape}
+        kept = {id(s.planes): s for s in self._states}  # (a grown map is new planes: new buffers)
         self._states = [kept.get(id(p)) or _TableState.for_planes(p) for p in planes]
         self._lr, self._steps = lr, 0
         for s in self._states:

@@ -93,6 +93,10 @@ def reference_lookup(points: torch.Tensor, table: torch.Tensor, bound_min: torch
     return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum").reshape(len(points), -1)
 
 
+def _cpu_float32(t: torch.Tensor) -> bool:
+    return t.device.type == "cpu" and t.dtype == torch.float32
+
+
 @dataclass
 class RowGradients:
     """Where the kernel's backward pass accumulates a table's gradient instead of autograd's `.grad`: `grad`
@@ -179,16 +183,11 @@ class FeaturePlanes(nn.Module):
 
     def kernel(self) -> ctypes.CDLL | None:
         """The C kernel library when lookups on this table run in it (CPU, float32, kernel built), else None."""
-        table = self.table
-        if not (self.use_native and table.device.type == "cpu" and table.dtype == torch.float32):
-            return None
-        return load_kernel("plane_lookup")
+        return load_kernel("plane_lookup") if self.use_native and _cpu_float32(self.table) else None
 
     def lookup(self, points: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
         """The lookup on any table of this layout (rows, any number of channels): (N, scales * table channels)."""
-        native = self.use_native and points.device.type == "cpu" and table.device.type == "cpu" and \
-            points.dtype == torch.float32 and table.dtype == torch.float32
-        lib = load_kernel("plane_lookup") if native else None
+        lib = self.kernel() if _cpu_float32(points) and _cpu_float32(table) else None
         if lib is None:
             return reference_lookup(points, table, self.bound_min, self.bound_extent, self.layout, self.grid_sizes)
         sink = self.row_gradients if table is self.table else None
