@@ -49,9 +49,12 @@ def test_lookup_matches_grid_sample(planes, native):
     assert torch.allclose(planes(pts), brute_force(planes, pts), atol=1e-5)
 
 
-def test_native_kernel_matches_reference_with_gradients(planes):
+@pytest.mark.parametrize("channels", [8, 16, 32])  # the scalar loops; the vector ones (a folded table, the planes)
+def test_native_kernel_matches_reference_with_gradients(channels):
     if load_kernel("plane_lookup") is None:
         pytest.skip("no C compiler")
+    torch.manual_seed(0)
+    planes = FeaturePlanes(BOUND, (0.24, 0.06), channels=channels, init_std=1.0)
     pts = random_points(4000, outside=0.0).requires_grad_(True)
     g = torch.randn(4000, 2 * planes.channels)
     grads = []
