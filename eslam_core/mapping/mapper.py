@@ -27,6 +27,13 @@ from eslam_core.rendering.losses import eslam_losses
 from eslam_core.rendering.volume import render_rays
 
 
+def import_optimiser_code() -> None:
+    """Build and drop one Adam. A process's first torch optimiser imports torch's compiler stack (about 1 s on
+    2 cores): a mapping process pays it before its first keyframe instead of inside the map's warm-up, which every
+    tracked frame waits for."""
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])
+
+
 @dataclass
 class MappingResult:
     loss: float

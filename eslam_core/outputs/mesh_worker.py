@@ -8,11 +8,12 @@ cpu.lower_priority) gets only the CPU time that tracking and mapping leave, and 
 
 Protocol (one job at a time; the caller waits for a job's `MeshUpdate` before it submits the next):
     caller                                   mesh process
-    submit(MeshSnapshot)  ---- map ---->     IncrementalMesher.update(view, budget) ----+
+    submit(snapshot)      ---- map ---->     IncrementalMesher.update(view, budget) ----+
     submit(None)          ---- continue -->  (same map: the blocks still dirty)          |
     poll() -> MeshUpdate  <--- blocks -------------------------------------------------+
     reset()               ---- reset --->    forget everything (a new map)
-A snapshot carries the field and every keyframe pose, but only the depth images the process does not have yet.
+A snapshot carries the field and every keyframe pose, but only the depth images the process does not have yet; it
+travels as the bytes of a PackedSnapshot, made by whoever took it (in the runtime: the mapping process).
 Blocks come back as triangle soups (corners float64, RGBA float32), thinned to the triangle budget, ready to be
 written into a message without another copy.
 """
@@ -22,6 +23,7 @@ import io
 import logging
 import multiprocessing
 import os
+import pickle
 import signal
 import threading
 import time
@@ -31,6 +33,7 @@ from typing import Any, Hashable, Optional
 
 import numpy as np
 import torch
+import torch.multiprocessing  # noqa: F401 - registers the reductions that send a shared tensor as a handle
 
 from eslam_core.camera import Intrinsics
 from eslam_core.cpu import lower_priority, name_process
@@ -81,6 +84,26 @@ class MeshUpdate:
     error: str = ""  # the traceback of a job that failed (the process goes on)
 
 
+@dataclass
+class PackedSnapshot:
+    """A MeshSnapshot pickled where it is made (in the runtime: the mapping process) into shared memory: it goes to
+    the mesh process through the caller as a handle, not as bytes. Unpickled and pickled again in the ROS node, the
+    10-30 MB of a snapshot held the node's interpreter lock for tens of milliseconds, and its poses waited."""
+
+    keyframe_ids: list
+    data: torch.Tensor  # uint8, in shared memory (torch.multiprocessing passes its file descriptor)
+
+    @staticmethod
+    def of(snapshot: MeshSnapshot) -> "PackedSnapshot":
+        raw = pickle.dumps(snapshot, pickle.HIGHEST_PROTOCOL)
+        data = torch.empty(len(raw), dtype=torch.uint8).share_memory_()
+        data.numpy()[:] = np.frombuffer(raw, dtype=np.uint8)
+        return PackedSnapshot(list(snapshot.keyframe_ids), data)
+
+    def unpack(self) -> MeshSnapshot:
+        return pickle.loads(memoryview(self.data.numpy()))
+
+
 def snapshot_for_meshing(scene, have: set) -> MeshSnapshot:
     """A scene map (`SLAM.map`; in the runtime the mapping process's, see `mesh_snapshot`) as a MeshSnapshot;
     `have`: keyframe ids whose depth was sent."""
@@ -104,7 +127,7 @@ class _Setup:
 @dataclass(frozen=True)
 class _Job:
     epoch: int
-    snapshot: Optional[MeshSnapshot]  # None: continue on the last map
+    snapshot: Optional[PackedSnapshot]  # None: continue on the last map
 
 
 @dataclass(frozen=True)
@@ -127,12 +150,12 @@ class _Worker:
         self.depths: dict = {}
         self.stride = 1
 
-    def run(self, job: _Job) -> MeshUpdate:
+    def run(self, epoch: int, snapshot: Optional[MeshSnapshot]) -> MeshUpdate:
         wall, cpu = time.monotonic(), time.process_time()
-        if job.snapshot is not None:
-            self.view = self._view(job.snapshot)
+        if snapshot is not None:
+            self.view = self._view(snapshot)
         if self.view is None:
-            return MeshUpdate(job.epoch)
+            return MeshUpdate(epoch)
         if self.mesher is None:
             settings = MeshSettings(resolution=self.layout.resolution, truncation=self.view.truncation)
             self.mesher = IncrementalMesher(self.layout, settings)
@@ -147,7 +170,7 @@ class _Worker:
 
         soups = {key: triangle_soup(blocks[key], block_stride(blocks[key])) for key in resend}
         triangles = sum(-(-b.triangles // block_stride(b)) for b in blocks.values())
-        return MeshUpdate(job.epoch, soups, changes.removed, len(blocks), triangles, stride, changes.meshed,
+        return MeshUpdate(epoch, soups, changes.removed, len(blocks), triangles, stride, changes.meshed,
                           changes.pending, time.monotonic() - wall, time.process_time() - cpu)
 
     def _view(self, snapshot: MeshSnapshot) -> MapView:
@@ -196,7 +219,7 @@ def _serve(connection, setup: _Setup) -> None:
             worker.reset()
             continue
         try:
-            update = worker.run(message)
+            update = worker.run(message.epoch, message.snapshot and message.snapshot.unpack())
         except Exception:  # noqa: BLE001 - reported to the caller; the next job starts from a fresh mesher
             update = MeshUpdate(message.epoch, error=traceback.format_exc())
             worker.reset()
@@ -251,13 +274,15 @@ class BackgroundMesher:
             raise MesherCrashed(f"the mesh process did not start (exit code {code}; see its output above)")
         self.busy, self.pending, self._have = False, 0, set()
 
-    def submit(self, snapshot: Optional[MeshSnapshot]) -> None:
+    def submit(self, snapshot: MeshSnapshot | PackedSnapshot | None) -> None:
         """Start a job: mesh this map (its depth images for the keyframes the process has not got yet), or continue
         with the blocks still dirty on the last one (None)."""
         if self.busy:
             raise RuntimeError("the mesh process is busy: poll() for its update before submitting another job")
         if not self.running:
             self.start()
+        if isinstance(snapshot, MeshSnapshot):
+            snapshot = PackedSnapshot.of(snapshot)
         if snapshot is not None:
             self._have = set(snapshot.keyframe_ids)
         self._send(_Job(self.epoch, snapshot))

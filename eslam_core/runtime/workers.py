@@ -62,6 +62,7 @@ from eslam_core.cpu import PeriodicRelease, lower_priority, name_process
 from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSurfaces
+from eslam_core.mapping.mapper import import_optimiser_code
 from eslam_core.mapping.scene_map import SceneMap, initial_extent, surface_points
 from eslam_core.native import load_kernel
 from eslam_core.representation.field import SceneField
@@ -175,7 +176,7 @@ class MeshRequest:  # parent -> mapper
 class MapperSnapshot:  # mapper -> parent
     request_id: int
     epoch: int
-    # SceneMap.state_dict() as torch.save bytes (one copy, no tensor handles to share), or the MeshSnapshot of a
+    # SceneMap.state_dict() as torch.save bytes (one copy, no tensor handles to share), or the PackedSnapshot of a
     # MeshRequest; None before keyframe 0
     state: Any
 
@@ -593,6 +594,7 @@ class MapperWorker:
                                setup.threads, setup.lend_threads)
         self.backlog_limit = 0 if self.live else setup.keyframe_backlog
         register_optimizer_step_post_hook(self._after_iteration)
+        import_optimiser_code()
 
     def _new_state(self) -> None:
         self.scene: Optional[SceneMap] = None
@@ -788,11 +790,11 @@ class MapperWorker:
     def _mesh_snapshot(self, req: MeshRequest):
         """The map for the mesh process, made here: the parent only passes it on (a whole `_snapshot` of the
         state took the node 1-3 s per mesh on 2 cores, and stalled its poses)."""
-        from eslam_core.outputs.mesh_worker import snapshot_for_meshing
+        from eslam_core.outputs.mesh_worker import PackedSnapshot, snapshot_for_meshing
 
         if req.epoch != self.epoch or self.scene is None:
             return None
-        return snapshot_for_meshing(self.scene, req.have)
+        return PackedSnapshot.of(snapshot_for_meshing(self.scene, req.have))
 
     def _snapshot(self, req: SnapshotRequest) -> Optional[bytes]:
         """The scene map (field, keyframes, window sampler): what a `SLAM` checkpoint needs besides the
