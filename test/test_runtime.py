@@ -24,6 +24,7 @@ from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import load_config
 from eslam_core.evaluation.trajectory import Trajectory, ate
 from eslam_core.outputs.export import load_checkpoint, map_mesh
+from eslam_core.outputs.mesh_worker import PackedSnapshot
 from eslam_core.representation.field import SceneField
 from eslam_core.frames import pixel_directions_table, prepare_frame
 from eslam_core.mapping.scene_map import initial_extent
@@ -415,6 +416,15 @@ def test_live_policy_in_process_and_reset(room_sequence):
     assert rt.trajectory()[0].min() >= room_sequence[10].timestamp  # only frames after the reset
 
 
+def unpacked(snapshot):
+    """A mesh snapshot as the mesh process sees it; the two-process runtime's comes as a handle on shared memory
+    (the node passes it on without copying it)."""
+    if isinstance(snapshot, PackedSnapshot):
+        assert snapshot.data.is_shared()
+        return snapshot.unpack()
+    return snapshot
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_poll_waits_for_the_next_pose_and_mesh_snapshots_are_light(room_sequence, workers):
     """poll(timeout) returns as soon as a pose is made (a publisher thread needs no polling loop), and returns
@@ -437,14 +447,14 @@ def test_poll_waits_for_the_next_pose_and_mesh_snapshots_are_light(room_sequence
             got += [u.index for u in more]
         assert got == [1, 2, 3, 4, 5]
         assert wait_until(lambda: rt.health().keyframe_queue_depth == 0, 120)
-        first = rt.mesh_snapshot(set())
+        first = unpacked(rt.mesh_snapshot(set()))
         kept = list(rt.snapshot().map.keyframes)
         assert [k for k, _ in first.keyframe_ids] == [kf.number for kf in kept] and len(kept) >= 1
         assert set(first.new_depths) == set(first.keyframe_ids)
         assert np.allclose(first.poses, np.stack([kf.pose.double().numpy() for kf in kept]), atol=1e-5)
         assert all(d.shape == (room_sequence.intrinsics.height, room_sequence.intrinsics.width)
                    for d in first.new_depths.values())
-        again = rt.mesh_snapshot(set(first.keyframe_ids))
+        again = unpacked(rt.mesh_snapshot(set(first.keyframe_ids)))
         assert again.keyframe_ids == first.keyframe_ids and again.new_depths == {}
         field = torch.load(__import__("io").BytesIO(again.field), weights_only=False)
         points = torch.tensor([[0.0, 0.0, 1.0]])
