@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
 from eslam_core.outputs.mesh import EmptyMeshError
-from eslam_core.outputs.mesh_worker import BackgroundMesher, MesherCrashed, MeshSnapshot, MeshUpdate
+from eslam_core.outputs.mesh_worker import BackgroundMesher, MesherCrashed, MeshSnapshot, MeshUpdate, PackedSnapshot
 from eslam_ros.mesh_markers import TriangleBlock, serialize_block_markers
 
 # Seconds between two looks at the mesh process (its results, new subscribers, the next job).
@@ -111,7 +111,7 @@ class MeshPublication:
         """One look at the mesh process, for a SLAM runtime (its map version and `mesh_snapshot()`)."""
         self.step(runtime.health().map_version, runtime.mesh_snapshot)
 
-    def step(self, map_version: Any, take_snapshot: Callable[[set], MeshSnapshot]) -> None:
+    def step(self, map_version: Any, take_snapshot: Callable[[set], MeshSnapshot | PackedSnapshot]) -> None:
         """Publish the mesh process's update if one is ready, every block if a subscriber is new, and start the
         next job when one is due: a new snapshot (`take_snapshot(ids of the keyframes whose depth the process
         has)`) every `period` seconds if the map version changed, else a continuation while blocks are dirty."""
@@ -160,7 +160,7 @@ class MeshPublication:
             self.figures.snapshot_ms_last = 1000 * (time.monotonic() - start)
             self._submit(snapshot)
 
-    def _submit(self, snapshot: Optional[MeshSnapshot]) -> None:
+    def _submit(self, snapshot: MeshSnapshot | PackedSnapshot | None) -> None:
         try:
             self.mesher.submit(snapshot)
         except MesherCrashed as error:
