@@ -13,7 +13,7 @@ Protocol (one job at a time; the caller waits for a job's `MeshUpdate` before it
     poll() -> MeshUpdate  <--- blocks -------------------------------------------------+
     reset()               ---- reset --->    forget everything (a new map)
 A snapshot carries the field and every keyframe pose, but only the depth images the process does not have yet; it
-travels as the bytes of a PackedSnapshot, made by whoever took it (in the runtime: the mapping process).
+travels as a PackedSnapshot, pickled into shared memory by whoever took it (in the runtime: the mapping process).
 Blocks come back as triangle soups (corners float64, RGBA float32), thinned to the triangle budget, ready to be
 written into a message without another copy.
 """

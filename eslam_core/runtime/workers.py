@@ -61,8 +61,8 @@ from eslam_core.device import peak_memory_mb as device_peak_mb, resolve_device
 from eslam_core.cpu import PeriodicRelease, lower_priority, name_process
 from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics
 from eslam_core.mapping.keyframes import Keyframe
-from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.mapping.mapper import import_optimiser_code
+from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.mapping.scene_map import SceneMap, initial_extent, surface_points
 from eslam_core.native import load_kernel
 from eslam_core.representation.field import SceneField
