@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 
 def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
@@ -54,9 +55,12 @@ def quaternion_xyzw_to_matrix(q) -> np.ndarray:
 
 
 def matrix_to_quaternion_xyzw(R) -> np.ndarray:
-    """numpy (..., 3, 3) rotation -> (..., 4) unit quaternion (x, y, z, w) with w >= 0."""
-    q = matrix_to_quaternion(torch.as_tensor(np.asarray(R, dtype=np.float64)))
-    return q[..., [1, 2, 3, 0]].numpy()
+    """numpy (..., 3, 3) rotation -> (..., 4) unit quaternion (x, y, z, w) with w >= 0. SciPy's conversion: through
+    torch, the per-operation overhead made one matrix cost 0.23 ms (the ROS node converts three per pose), SciPy's
+    0.05 ms."""
+    R = np.asarray(R, dtype=np.float64)
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat(canonical=True)
+    return q.reshape(R.shape[:-2] + (4,))
 
 
 def pose_to_params(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
