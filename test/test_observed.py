@@ -42,3 +42,24 @@ def test_growing_by_one_voxel_equals_a_3x3x3_max_pool():
     expected = F.max_pool3d(grid[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
     assert torch.equal(grow_by_one_voxel(grid), expected)
     assert grid.sum() < expected.sum() < grid.numel()
+
+
+def test_a_grown_grid_keeps_every_observed_voxel_where_it_was():
+    """A map grows by whole coarse cells (0.24 m here, 4 voxels), again and again: the grid must keep its voxels in
+    place. Bounds then fall on voxel edges, and the float32 origin's rounding once made the grown grid a voxel short
+    on one axis (the mapper crashed)."""
+    rng = np.random.default_rng(0)
+    cell = 0.24
+    for _ in range(40):
+        bound = np.stack([rng.integers(-20, 0, 3), rng.integers(1, 20, 3)]).astype(np.float64) * cell
+        space = ObservedSpace(bound, voxel=0.06)
+        surface = space.origin + torch.rand(200, 3) * torch.tensor(space.shape) * space.voxel * 0.999
+        space.add(surface)
+        seen = int(space.seen.sum())
+        for _ in range(8):
+            bound = bound + np.stack([-rng.integers(0, 3, 3), rng.integers(0, 3, 3)]) * cell
+            before = space.shape
+            space = space.grown(bound)
+            needed = np.ceil((bound[1] - bound[0]) / space.voxel - 1e-6)
+            assert all(s <= g == n for g, s, n in zip(space.shape, before, needed))
+            assert bool(space.contains(surface).all()) and int(space.seen.sum()) == seen

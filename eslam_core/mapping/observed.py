@@ -17,11 +17,19 @@ import numpy as np
 import torch
 
 
+def voxels_to_cover(length: np.ndarray, voxel: float) -> np.ndarray:
+    """Whole voxels covering `length` along each axis. A map's bounds fall on voxel edges (whole coarse cells), and a
+    grid's float32 origin is off by up to ~4e-6 voxels there: that rounding must not add a voxel (the grid would
+    drift from the bounds as the map grows) nor drop one (a grown grid was once a voxel short of the old one, and
+    the mapper crashed)."""
+    return np.ceil(np.asarray(length) / voxel - 1e-3).astype(int)
+
+
 class ObservedSpace:
     def __init__(self, bound: np.ndarray, voxel: float, device: torch.device | str | None = None):
         self.origin = torch.tensor(bound[0], dtype=torch.float32, device=device)
         self.voxel = voxel
-        self.shape = tuple(int(n) for n in np.ceil((bound[1] - bound[0]) / voxel - 1e-6))
+        self.shape = tuple(int(n) for n in voxels_to_cover(bound[1] - bound[0], voxel))
         self._shape = torch.tensor(self.shape, device=device)
         self.seen = torch.zeros(self.shape, dtype=torch.bool, device=device)
         self._near: torch.Tensor | None = None  # `seen` grown by one voxel, computed when first needed
@@ -33,7 +41,7 @@ class ObservedSpace:
     def grown(self, bound: np.ndarray) -> "ObservedSpace":
         """The same observed voxels in a grid over a larger bound (aligned to this grid's voxels)."""
         origin = self.origin.double().cpu().numpy()
-        shift = np.ceil((origin - bound[0]) / self.voxel - 1e-6).astype(int).clip(min=0)
+        shift = voxels_to_cover(origin - bound[0], self.voxel).clip(min=0)
         new = ObservedSpace(np.stack([origin - shift * self.voxel, bound[1]]), self.voxel, self.device)
         i, j, k = shift
         new.seen[i: i + self.shape[0], j: j + self.shape[1], k: k + self.shape[2]] = self.seen
