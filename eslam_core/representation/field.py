@@ -103,8 +103,8 @@ class FrozenField:
     scale, instead of to every sample: a sample then gathers `decoder_hidden` (16) channels per corner instead of
     2 x 32 and no per-sample feature vector is written or back-propagated. Same values as the field up to float
     rounding. The folded tables are built on first use (a few ms), so a tracker that never asks for colour never
-    folds the appearance planes; the field must not change while its FrozenField is in use (trackers build one per
-    frame).
+    folds the appearance planes; the field must not change while its FrozenField is in use (trackers keep one per
+    map version: FoldedMap).
     """
 
     def __init__(self, field: SceneField):
