@@ -4,6 +4,8 @@ ESLAM optimises a camera pose as a translation and a quaternion with Adam, no ma
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
@@ -107,13 +109,14 @@ def rotvec_to_matrix(rotvec) -> np.ndarray:
 
 def so3_exp(w: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula (torch, on w's device): the rotation matrix of the rotation vector w."""
-    theta = w.norm()
-    K = torch.zeros(3, 3, dtype=w.dtype, device=w.device)
-    K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -w[2], w[1], w[2], -w[0], -w[1], w[0]
     eye = torch.eye(3, dtype=w.dtype, device=w.device)
-    if theta < 1e-9:
-        return eye + K
-    return eye + torch.sin(theta) / theta * K + (1 - torch.cos(theta)) / theta**2 * K @ K
+    K = torch.linalg.cross(eye, w.expand(3, 3))  # row i: e_i x w, so K v = w x v
+    theta = float(w.norm())
+    if theta < 1e-4:  # the series of sin(t) / t and (1 - cos(t)) / t^2: exact to float64 there
+        a, b = 1.0 - theta**2 / 6.0, 0.5 - theta**2 / 24.0
+    else:
+        a, b = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta**2
+    return eye + a * K + b * (K @ K)
 
 
 def scale_motion(M: np.ndarray, factor: float) -> np.ndarray:

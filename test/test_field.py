@@ -62,3 +62,19 @@ def test_a_folded_map_is_kept_while_the_map_version_stays_and_refolded_when_it_c
     other = SceneField(BOUND, load_config("replica").model)
     assert folded.of(other, 2) is not changed  # another field (a grown map) at the same version number
     assert folded.of(other, None) is not folded.of(other, None)  # no version: folded afresh each time
+
+
+@pytest.mark.parametrize("native", [False, True])
+def test_sdf_with_gradient_equals_autograd(field, native):
+    if native and load_kernel("plane_lookup") is None:
+        pytest.skip("no C compiler")
+    field.geometry_planes.use_native = native
+    fixed = FrozenField(field)
+    x = torch.from_numpy(np.random.default_rng(3).uniform(BOUND[0], BOUND[1], (5000, 3))).float()
+    sdf, grad = fixed.sdf_with_gradient(x)
+    xa = x.clone().requires_grad_(True)
+    expected = field.sdf(xa)
+    (expected_grad,) = torch.autograd.grad(expected.sum(), xa)
+    assert (sdf - expected.detach()).abs().max() <= 1e-5
+    assert expected_grad.abs().max() > 0.1  # a gradient worth comparing
+    assert (grad - expected_grad).abs().max() <= 1e-4 * expected_grad.abs().max()

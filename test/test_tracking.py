@@ -7,7 +7,7 @@ from eslam_core.mapping.extent import grow_to_multiple
 from eslam_core.config import load_config
 from eslam_core.representation.field import SceneField
 from eslam_core.frames import pixel_directions_table, prepare_frame
-from eslam_core.geometry import depth_points_world, rotation_angle_deg
+from eslam_core.geometry import depth_points_world, rotation_angle_deg, so3_exp
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.mapper import Mapper
 from eslam_core.tracking.render_tracker import Tracker, constant_velocity, draw_in_extent, outlier_mask
@@ -69,6 +69,13 @@ def test_constant_velocity_repeats_last_motion():
     c = constant_velocity(a, b)
     assert np.allclose(np.linalg.inv(b) @ c, np.linalg.inv(a) @ b)
     assert np.allclose(constant_velocity(None, b), b)
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 1e-4, 0.5, 30.0, 170.0])
+def test_so3_exp_is_the_rotation_of_the_rotation_vector(angle_deg):
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    R = so3_exp(torch.from_numpy(axis * np.radians(angle_deg))).numpy()
+    np.testing.assert_allclose(R, axis_angle(axis, angle_deg), atol=1e-12)
 
 
 def test_outlier_mask_drops_large_depth_errors():

@@ -17,6 +17,11 @@ class Decoder(nn.Module):
         blocks.append(nn.Linear(dims[-1], out_dim))
         self.mlp = nn.Sequential(*blocks)
         self.activation = {"tanh": torch.tanh, "sigmoid": torch.sigmoid}[activation]
+        self.activation_name = activation
+
+    def activation_slope(self, y: torch.Tensor) -> torch.Tensor:
+        """d activation / d input, written in the activation's output y."""
+        return 1.0 - y * y if self.activation_name == "tanh" else y * (1.0 - y)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         return self.activation(self.mlp(features))

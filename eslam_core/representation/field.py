@@ -140,6 +140,26 @@ class FrozenField:
     def sdf(self, points: torch.Tensor) -> torch.Tensor:
         return self.decode("sdf", self.first_layer("sdf", points)).squeeze(-1)
 
+    def sdf_with_gradient(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N,) normalised TSDF and its gradient in the points (N, 3), the chain rule written out: a tracker asks
+        for both at every iteration, and on a few thousand points building and running autograd's graph of the
+        decoder costs more than its arithmetic."""
+        planes, decoder = self._parts["sdf"]
+        _, _, later = self._fold("sdf")
+        with torch.no_grad():
+            h = self.first_layer("sdf", points)
+            inputs = []  # each later layer's input before its ReLU
+            for weight, bias in later:
+                inputs.append(h)
+                h = F.linear(F.relu(h), weight, bias)
+            y = decoder.activation(h)
+            g = decoder.activation_slope(y)  # d y / d h, then back through the layers to the first one's output
+            for (weight, _), h_in in zip(reversed(later), reversed(inputs)):
+                g = (g @ weight) * (h_in > 0)
+            # The first layer's output is the sum over scales of each scale's lookup: the same gradient for each.
+            grad = planes.lookup_gradient(points, self._fold("sdf")[0], g.repeat(1, len(planes.resolutions)))
+        return y.squeeze(-1), grad
+
     def color(self, points: torch.Tensor) -> torch.Tensor:
         return self.decode("color", self.first_layer("color", points))
 

@@ -194,6 +194,27 @@ class FeaturePlanes(nn.Module):
         return _FusedLookup.apply(points, table, self._sizes, self._offsets, self.bound_min, self.bound_extent, lib,
                                   sink)
 
+    def lookup_gradient(self, points: torch.Tensor, table: torch.Tensor, grad_features: torch.Tensor) -> torch.Tensor:
+        """(N, 3): the gradient in each point of sum(grad_features * lookup(points, table)), no autograd graph
+        needed (grad_features: (N, scales * table channels))."""
+        lib = self.kernel() if _cpu_float32(points) and _cpu_float32(table) and _cpu_float32(grad_features) \
+            else None
+        if lib is None:
+            with torch.enable_grad():
+                p = points.detach().requires_grad_(True)
+                features = reference_lookup(p, table.detach(), self.bound_min, self.bound_extent, self.layout,
+                                            self.grid_sizes)
+                (grad,) = torch.autograd.grad(features, p, grad_features)
+            return grad
+        points, grad_features = points.contiguous(), grad_features.contiguous()
+        grad = torch.zeros_like(points)
+        lib.plane_backward_points(pointer(points), ctypes.c_int64(len(points)), pointer(table),
+                                  ctypes.c_int64(table.shape[1]), ctypes.c_int64(len(self.resolutions)),
+                                  pointer(self._sizes), pointer(self._offsets), pointer(self.bound_min),
+                                  pointer(self.bound_extent), pointer(grad_features), pointer(grad),
+                                  ctypes.c_int(torch.get_num_threads()))
+        return grad
+
     def project(self, weight: torch.Tensor) -> torch.Tensor:
         """The table with each scale's rows multiplied by that scale's block of `weight` (out, scales * channels),
         a linear layer applied to the features: (rows, out). lookup(p, project(W)) summed over scales = W f(p)."""

@@ -31,7 +31,7 @@ import torch
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
 from eslam_core.cpu import denormals_flushed
-from eslam_core.representation.field import FoldedMap, RadianceField, SceneField
+from eslam_core.representation.field import FoldedMap, FrozenField, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
 from eslam_core.geometry import depth_points_world, so3_exp
 from eslam_core.mapping.keyframes import Keyframe
@@ -54,7 +54,7 @@ def huber_cost(r: torch.Tensor) -> torch.Tensor:
     return torch.where(a <= 1.0, 0.5 * a**2, a - 0.5)
 
 
-def field_residuals(field: RadianceField, x: torch.Tensor, truncation: float, with_color: bool,
+def field_residuals(field: FrozenField, x: torch.Tensor, truncation: float, with_color: bool,
                     gradients: bool = True
                     ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
     """Signed distance T * phi_g(x) (metres) and grey level g(phi_a(x)), each with its gradient in x (None without
@@ -62,14 +62,13 @@ def field_residuals(field: RadianceField, x: torch.Tensor, truncation: float, wi
     if not gradients:
         with torch.no_grad():
             return field.sdf(x) * truncation, None, to_grey(field.color(x)) if with_color else None, None
-    x = x.detach().requires_grad_(True)
-    sdf = field.sdf(x) * truncation
-    (sdf_grad,) = torch.autograd.grad(sdf.sum(), x)
+    sdf, sdf_grad = field.sdf_with_gradient(x)
     if not with_color:
-        return sdf.detach(), sdf_grad, None, None
+        return sdf * truncation, sdf_grad * truncation, None, None
+    x = x.detach().requires_grad_(True)
     grey = to_grey(field.color(x))
     (grey_grad,) = torch.autograd.grad(grey.sum(), x)
-    return sdf.detach(), sdf_grad, grey.detach(), grey_grad
+    return sdf * truncation, sdf_grad * truncation, grey.detach(), grey_grad
 
 
 def gauss_newton_step(x: torch.Tensor, r: torch.Tensor, grad: torch.Tensor, w: torch.Tensor,
