@@ -361,6 +361,12 @@ class RuntimeConfig:
     # A tracker faster than the mapper otherwise runs ahead without limit: on 300 ICL frames the map it tracked
     # against lagged 34 keyframes behind, and on a long run the mapper's queue of keyframes grows with time.
     max_keyframe_lag: Optional[int] = 4
+    # Pipelined: the tracker gets the first map after this many of the warm-up's iterations (null = after all of
+    # them) and tracks while the warm-up goes on, instead of waiting with its core lent to the warm-up (two threads
+    # on the warm-up's small tensors are only ~1.2x one). The first frames are then tracked against a map of the
+    # first keyframe that is still converging, mostly held by the odometry and the photometric term on that same
+    # keyframe.
+    first_map_after: Optional[int] = None
     # Pipelined: the mapping process's niceness (0-19). Tracking sets the pose latency and mapping can catch up
     # later (its steps are cut short while keyframes wait), so on a machine short of cores the mapper gets the
     # time that tracking and the node leave.
@@ -375,6 +381,8 @@ class RuntimeConfig:
               "must be >= 1, or null for never")
         check(self.max_keyframe_lag is None or self.max_keyframe_lag >= 0, "runtime.max_keyframe_lag",
               "must be >= 0, or null for no limit")
+        check(self.first_map_after is None or self.first_map_after >= 1, "runtime.first_map_after",
+              "must be >= 1 (warm-up iterations), or null for after the whole warm-up")
         check(0 <= self.mapper_nice <= 19, "runtime.mapper_nice", "must be a niceness from 0 to 19")
 
 

@@ -14,7 +14,11 @@
   live ones cannot be trimmed from the heap's top, and over a 20-minute soak they had grown each worker's resident
   memory by 40-75 %.
 
-Both concern the CPU's arithmetic and the host's allocator. On a GPU run (`run.device: cuda`) the heavy loops run
+- `flat_nonzero(mask)`: the indices of a mask's true elements; torch's nonzero runs 5x slower than numpy's on a CPU
+  (a 640 x 480 frame's mask: 1.1 -> 0.2 ms), and the tracker asks once per frame, the plane optimiser twice per
+  iteration.
+
+The first two concern the CPU's arithmetic and the host's allocator. On a GPU run (`run.device: cuda`) the heavy loops run
 on the device and neither setting changes anything there; they stay on for the little host-side work, where they
 cost nothing.
 """
@@ -26,6 +30,7 @@ import os
 import time
 from contextlib import contextmanager
 
+import numpy as np
 import torch
 
 from eslam_core.native import load_kernel
@@ -114,3 +119,10 @@ def denormals_flushed():
         _flush_depth -= 1
         if _flush_depth == 0:  # every pool thread used meanwhile (the count may change mid-block)
             set_flush_denormals(False, max(threads, torch.get_num_threads()))
+
+
+def flat_nonzero(mask: torch.Tensor) -> torch.Tensor:
+    """(K,) int64 positions of the true elements of a flattened bool / uint8 mask, on the mask's device."""
+    if mask.device.type != "cpu":
+        return torch.nonzero(mask.reshape(-1)).squeeze(1)
+    return torch.from_numpy(np.flatnonzero(mask.numpy()))

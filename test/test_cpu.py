@@ -5,7 +5,7 @@ import platform
 import pytest
 import torch
 
-from eslam_core.cpu import denormals_flushed, keep_freed_memory
+from eslam_core.cpu import denormals_flushed, flat_nonzero, keep_freed_memory
 from eslam_core.native import load_kernel
 
 
@@ -29,3 +29,12 @@ def test_denormals_are_flushed_in_all_torch_threads_inside_the_block_only():
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt is glibc's")
 def test_glibc_keeps_freed_memory():
     assert keep_freed_memory()
+
+
+@pytest.mark.parametrize("dtype", [torch.bool, torch.uint8])
+@pytest.mark.parametrize("share", [0.0, 0.3, 1.0])
+def test_flat_nonzero_equals_torch_nonzero(dtype, share):
+    mask = (torch.rand(480, 640) < share).to(dtype)
+    got = flat_nonzero(mask)
+    assert got.dtype == torch.int64
+    torch.testing.assert_close(got, torch.nonzero(mask.reshape(-1)).squeeze(1))

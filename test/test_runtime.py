@@ -636,3 +636,31 @@ def test_offline_tracker_stays_within_max_keyframe_lag_of_the_mapper(room_sequen
         assert deepest >= 4, deepest
     else:
         assert 1 <= deepest <= lag + 1, deepest
+
+
+def test_the_tracker_starts_on_the_warm_up_map_after_first_map_after_iterations(room_sequence):
+    """runtime.first_map_after: the tracker gets the map of the first keyframe part way through its warm-up and
+    tracks (accurately: the odometry and that keyframe's images hold the first frames) while the warm-up goes on;
+    without it frame 1 waits for the whole warm-up."""
+    frames = [room_sequence[i] for i in range(6)]
+    first_latency, early = {}, None
+    for after in (None, 25):
+        cfg = fast_cfg(mapping={"first_iterations": 250, "rays": 500}, tracking={"method": "sdf"},
+                       runtime={"first_map_after": after})
+        rt = make_runtime(cfg, room_sequence.intrinsics, workers=2, policy="offline", threads=1)
+        updates = []
+        with rt:
+            for f in frames:
+                rt.submit(f)
+            wait_until(lambda: rt.health().frames_tracked == len(frames) or rt.health().map_version >= 2, 60)
+            if after is not None:
+                early = rt.health()
+            updates += rt.poll()
+        updates += rt.poll()
+        assert rt.health().frames_tracked == len(frames)
+        first_latency[after] = next(u.latency_s for u in updates if u.index == frames[1].index)
+        poses = {u.index: u.pose for u in updates}
+        assert ate_cm([f.timestamp for f in frames], [poses[f.index] for f in frames], frames) < 1.0
+    # every frame tracked on the early map (version 1), before the end of the warm-up (version 2)
+    assert early.frames_tracked == len(frames) and early.map_version == 1, early
+    assert first_latency[25] < 0.5 * first_latency[None], first_latency

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
+from eslam_core.cpu import flat_nonzero
 from eslam_core.native import pointer
 from eslam_core.representation.planes import FeaturePlanes, RowGradients
 
@@ -61,7 +62,7 @@ class RowSparseAdam:
         finally:
             for s in self._states:
                 s.planes.row_gradients = None
-                reached = torch.nonzero(s.gradients.touched).squeeze(1)
+                reached = flat_nonzero(s.gradients.touched)
                 for buffer in (s.gradients.grad, s.exp_avg, s.exp_avg_sq):
                     buffer.index_fill_(0, reached, 0.0)
                 s.gradients.touched.zero_()
@@ -74,7 +75,7 @@ class RowSparseAdam:
         for s in self._states:
             table = s.planes.table
             lib = s.planes.kernel()
-            reached = torch.nonzero(s.gradients.touched).squeeze(1)
+            reached = flat_nonzero(s.gradients.touched)
             lib.adam_rows(pointer(table.data), pointer(s.gradients.grad), pointer(s.exp_avg),
                           pointer(s.exp_avg_sq), pointer(reached), ctypes.c_int64(len(reached)),
                           ctypes.c_int64(table.shape[1]), ctypes.c_float(step_size), ctypes.c_float(beta1),

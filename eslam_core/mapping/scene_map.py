@@ -18,6 +18,7 @@ import torch
 
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
+from eslam_core.cpu import flat_nonzero
 from eslam_core.device import resolve_device
 from eslam_core.frames import PreparedFrame
 from eslam_core.geometry import depth_points_world
@@ -185,7 +186,7 @@ class SceneMap:
         current = len(self.keyframes) - 1
         kf = self.keyframes[current]
         d = kf.depth_image().reshape(-1)
-        with_depth = torch.nonzero(d > 0).squeeze(1)
+        with_depth = flat_nonzero(d > 0)
         sample = with_depth[torch.randint(len(with_depth), (min(len(with_depth), 500),))] if len(with_depth) else \
             with_depth
         points = depth_points_world(self.dirs_cam[kf.frame_pixels(sample, self.intr.width)], d[sample], kf.pose)

@@ -4,7 +4,8 @@ Tracker: takes frames from the shared frame ring and runs the lock-step schedule
 (`PipelinedTracking`): every frame is tracked against the newest map version it can see, stored relative to its
 keyframe, and every `mapping.every`-th frame becomes a keyframe that is handed to the mapper (uint8 colour and
 16-bit depth, as `Keyframe` stores them) instead of being mapped. It never waits for the mapper, except once:
-frame 1 needs the map of frame 0 (the warm-up), as in the lock-step schedule. Refined keyframe poses come back
+frame 1 needs the map of frame 0 (the warm-up), as in the lock-step schedule, or with `runtime.first_map_after` the
+map after that many of the warm-up's iterations. Refined keyframe poses come back
 from the mapper and move the frames tracked after those keyframes, as in `SLAM`.
 
 Mapper: owns the `SceneField`. It starts the map from keyframe 0 (bound chosen by the tracker from that frame),
@@ -590,6 +591,7 @@ class MapperWorker:
         self._new_state()
         self.iterations = 0  # optimiser iterations of the current step
         self.publishing_mid_step = False
+        self.first_map_at: Optional[int] = None  # the warm-up iteration that attaches the tracker, if not its end
         self.cores = CoreShare(ch.board, Counter.MAPPER_BUSY, Counter.TRACKER_BUSY, Counter.MAPPER_BEAT,
                                setup.threads, setup.lend_threads)
         self.backlog_limit = 0 if self.live else setup.keyframe_backlog
@@ -603,13 +605,14 @@ class MapperWorker:
         self.steps_in_epoch = 0
         self.mapping = False  # a step is in progress (counts as backlog: the keyframe is not mapped yet)
         self.tracker_done = False
+        self.tracker_attached = False  # told of the map (MapAttach) in this epoch
         self.finished = False
         if self.epoch == 0 and self.setup.checkpoint:
             self.scene = loaded_slam(self.setup.checkpoint, self.setup.cfg, self.setup.intrinsics).map
             self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
             self.steps_in_epoch = 1
             self._publish()
-            self.ch.to_tracker.put(MapAttach(self.epoch, self.map.buffers, self.map.generation, self.scene.extent))
+            self._attach_tracker()
 
     def run(self) -> None:
         self.ch.to_parent.put(WorkerReady("mapper", os.getpid()))
@@ -684,7 +687,7 @@ class MapperWorker:
         start = time.perf_counter()
         if self.scene is None:
             refined, loss = {}, self._start_map(self.pending.popleft())
-            attach = True
+            attach = not self.tracker_attached
         else:
             field = self.scene.field
             with self.ch.board.timed(Counter.MAP_ADD_S):
@@ -705,7 +708,7 @@ class MapperWorker:
         log.debug("mapper: step %d done in %.2f s (%d threads at the end), map version %d", self.steps,
                   time.perf_counter() - start, torch.get_num_threads(), version)
         if attach:
-            self.ch.to_tracker.put(MapAttach(self.epoch, self.map.buffers, self.map.generation, self.scene.extent))
+            self._attach_tracker()
         dropped = self.scene.keyframes.take_dropped()
         if refined or dropped:
             self.ch.to_tracker.put(RefinedPoses(self.epoch, refined, dropped))
@@ -737,8 +740,16 @@ class MapperWorker:
         self.scene.start(msg.extent)
         self.scene.add_keyframe(msg.keyframe())
         self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
-        step = self._step(self.scene.warm_up, publish=False)
+        self.first_map_at = self.cfg.runtime.first_map_after
+        try:
+            step = self._step(self.scene.warm_up, publish=False)
+        finally:
+            self.first_map_at = None
         return step.loss if step else float("nan")
+
+    def _attach_tracker(self) -> None:
+        self.ch.to_tracker.put(MapAttach(self.epoch, self.map.buffers, self.map.generation, self.scene.extent))
+        self.tracker_attached = True
 
     def _step(self, run, publish: bool = True):
         self.iterations = 0
@@ -777,6 +788,9 @@ class MapperWorker:
         self.iterations += 1
         if self.publishing_mid_step and self.setup.publish_every and self.iterations % self.setup.publish_every == 0:
             self._publish(step_done=False)
+        if self.iterations == self.first_map_at:  # the warm-up's first keyframe counts as mapped from here on
+            self.map.publish(self.scene.field, 1)
+            self._attach_tracker()
         self._serve_requests()
 
     # ---------------------------------------------------------------------------------------------- snapshots

@@ -17,7 +17,7 @@ import torch
 
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
-from eslam_core.cpu import denormals_flushed
+from eslam_core.cpu import denormals_flushed, flat_nonzero
 from eslam_core.representation.field import FoldedMap, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
 from eslam_core.geometry import depth_points_world, params_to_pose, pose_to_params, rays_to_world, scale_motion
@@ -113,7 +113,7 @@ class Tracker:
         self._on(device)
         rgb, depth = frame.rgb.to(device).reshape(-1, 3), frame.depth.to(device).reshape(-1)
         start = init_pose.to(device)
-        candidates = torch.nonzero(self.border & (depth > 0)).squeeze(1)
+        candidates = flat_nonzero(self.border & (depth > 0))
         with_depth = len(candidates)
         candidates, inside = draw_in_extent(candidates, 8 * tc.rays, lambda pix: depth_points_world(
             self.dirs_cam[pix], depth[pix], start), extent)

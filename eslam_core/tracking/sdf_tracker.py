@@ -30,7 +30,7 @@ import torch
 
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
-from eslam_core.cpu import denormals_flushed
+from eslam_core.cpu import denormals_flushed, flat_nonzero
 from eslam_core.representation.field import FoldedMap, FrozenField, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
 from eslam_core.geometry import depth_points_world, so3_exp
@@ -130,7 +130,7 @@ class SDFTracker:
         self._on(device)
         image, depth = frame.rgb.to(device), frame.depth.to(device).reshape(-1)
         start = init_pose.to(device)
-        candidates = torch.nonzero(self.border & (depth > 0)).squeeze(1)
+        candidates = flat_nonzero(self.border & (depth > 0))
         pix, inside = draw_in_extent(candidates, min(tc.rays, len(candidates)), lambda pix: depth_points_world(
             self.dirs_cam[pix], depth[pix], start), extent)
         depth_fraction = len(candidates) * inside / self.border_pixels
