@@ -13,14 +13,15 @@
   `release_freed_memory()` now and then (the runtime's workers do, every `RELEASE_EVERY_S`): blocks freed between
   live ones cannot be trimmed from the heap's top, and over a 20-minute soak they had grown each worker's resident
   memory by 40-75 %.
-
+- `one_thread()`: torch runs the block on one thread. Operations on a few thousand elements (the SDF tracker's
+  points) are slower split over threads than on one: the fast tracker took 29 ms a frame on one thread and 42 ms on
+  two (ICL, 2-core machine), its matrix products and element-wise ops each paying the hand-off.
 - `flat_nonzero(mask)`: the indices of a mask's true elements; torch's nonzero runs 5x slower than numpy's on a CPU
   (a 640 x 480 frame's mask: 1.1 -> 0.2 ms), and the tracker asks once per frame, the plane optimiser twice per
   iteration.
 
-The first two concern the CPU's arithmetic and the host's allocator. On a GPU run (`run.device: cuda`) the heavy loops run
-on the device and neither setting changes anything there; they stay on for the little host-side work, where they
-cost nothing.
+On a GPU run (`run.device: cuda`) the heavy loops run on the device and none of these changes anything there; they
+stay on for the little host-side work, where they cost nothing.
 """
 from __future__ import annotations
 
@@ -119,6 +120,19 @@ def denormals_flushed():
         _flush_depth -= 1
         if _flush_depth == 0:  # every pool thread used meanwhile (the count may change mid-block)
             set_flush_denormals(False, max(threads, torch.get_num_threads()))
+
+
+@contextmanager
+def one_thread():
+    """torch on one thread inside the block (also as a decorator); the count before is restored after it."""
+    threads = torch.get_num_threads()
+    if threads != 1:
+        torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        if threads != 1:
+            torch.set_num_threads(threads)
 
 
 def flat_nonzero(mask: torch.Tensor) -> torch.Tensor:

@@ -65,13 +65,22 @@ def test_a_folded_map_is_kept_while_the_map_version_stays_and_refolded_when_it_c
 
 
 @pytest.mark.parametrize("native", [False, True])
-def test_sdf_with_gradient_equals_autograd(field, native):
+@pytest.mark.parametrize("hidden, layers", [(16, 2), (24, 3)])  # the kernel's vector and scalar layers
+def test_sdf_with_gradient_equals_autograd(native, hidden, layers):
     if native and load_kernel("plane_lookup") is None:
         pytest.skip("no C compiler")
+    torch.manual_seed(0)
+    field = SceneField(BOUND, load_config("replica", {"model": {"decoder_hidden": hidden,
+                                                                "decoder_layers": layers}}).model)
+    with torch.no_grad():
+        field.geometry_planes.table.normal_(0.0, 0.1)
     field.geometry_planes.use_native = native
     fixed = FrozenField(field)
     x = torch.from_numpy(np.random.default_rng(3).uniform(BOUND[0], BOUND[1], (5000, 3))).float()
     sdf, grad = fixed.sdf_with_gradient(x)
+    table, bias, _ = fixed._fold("sdf")
+    fused = field.geometry_planes.tsdf_with_gradient(x, table, bias, *fixed._packed("sdf"))
+    assert (fused is not None) == native  # the C kernel's one pass, or torch's chain rule
     xa = x.clone().requires_grad_(True)
     expected = field.sdf(xa)
     (expected_grad,) = torch.autograd.grad(expected.sum(), xa)

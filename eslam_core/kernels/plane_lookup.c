@@ -135,6 +135,103 @@ INLINE void point_gradient(const float *table, const Corners *c, int64_t C, cons
     }
 }
 
+/* The tracker's TSDF and its gradient in the points, one sweep per point (FrozenField.sdf_with_gradient): the
+ * decoder's first layer is folded into `table` (C = its width per scale: pre-activation = bias1 + the sum over the
+ * scales of the lookups), then L later layers (ReLU before each; layer l is dims[l+1] x dims[l], packed one after
+ * the other: `weights` row-major, `weights_t` the same layers transposed, `biases`; dims[0] = C, dims[L] = 1) and
+ * tanh. Back through the same layers to the first one's pre-activation, whose gradient is the same for every
+ * scale, then through the bilinear weights to the point. Widths up to MAX_WIDTH, S up to MAX_SCALES, L up to
+ * MAX_LAYERS. Layers of width VEC (the `fast` decoders' 16) run as vector FMAs: a column of W (a row of W^T) per
+ * input forward, a row of W per output backward. */
+#define MAX_WIDTH 64
+#define MAX_SCALES 4
+#define MAX_LAYERS 7
+
+/* out = W x + b, W (out x in) given as W^T (in x out). */
+INLINE void dense(const float *Wt, const float *b, const float *x, int64_t in, int64_t out, float *y) {
+    if (out == VEC) {
+        vecf acc = *(const vecf *)b;
+        for (int64_t k = 0; k < in; ++k) acc += x[k] * ((const vecf *)(Wt + k * VEC))[0];
+        *(vecf *)y = acc;
+        return;
+    }
+    for (int64_t j = 0; j < out; ++j) y[j] = b[j];
+    for (int64_t k = 0; k < in; ++k)
+        for (int64_t j = 0; j < out; ++j) y[j] += x[k] * Wt[k * out + j];
+}
+
+/* gin = W^T g, W (out x in) row-major. */
+INLINE void dense_back(const float *W, const float *g, int64_t in, int64_t out, float *gin) {
+    if (in == VEC) {
+        vecf acc = (vecf){0.f};
+        for (int64_t j = 0; j < out; ++j) acc += g[j] * ((const vecf *)(W + j * VEC))[0];
+        *(vecf *)gin = acc;
+        return;
+    }
+    for (int64_t k = 0; k < in; ++k) gin[k] = 0.f;
+    for (int64_t j = 0; j < out; ++j)
+        for (int64_t k = 0; k < in; ++k) gin[k] += g[j] * W[j * in + k];
+}
+
+INLINE void tsdf_point(const float *p, const float *table, int64_t C, int64_t S, const int64_t *sizes,
+                       const int64_t *offsets, const float *bmin, const float *ext, const float *bias1, int64_t L,
+                       const int64_t *dims, const float *weights, const float *weights_t, const float *biases,
+                       float *sdf, float grad[3]) {
+    Corners c[MAX_SCALES];
+    float dg[MAX_SCALES][3];
+    float pre[(MAX_LAYERS + 1) * MAX_WIDTH];  /* each layer's input before its ReLU, layer after layer */
+    float row[MAX_WIDTH], x[MAX_WIDTH];
+    memcpy(pre, bias1, sizeof(float) * C);
+    for (int64_t s = 0; s < S; ++s) {
+        int64_t base[3]; float frac[3];
+        grid_coords(p, bmin, ext, sizes + 3 * s, base, frac, dg[s]);
+        plane_corners(base, frac, sizes + 3 * s, offsets + 3 * s, &c[s]);
+        if (C == 16) gather_rows(table, &c[s], 16, row);
+        else gather_rows(table, &c[s], C, row);
+        for (int64_t k = 0; k < C; ++k) pre[k] += row[k];
+    }
+    int64_t w_at = 0, b_at = 0, at = 0;  /* layer l's weights, biases and input */
+    for (int64_t l = 0; l < L; ++l) {
+        const int64_t in = dims[l], out = dims[l + 1];
+        for (int64_t k = 0; k < in; ++k) x[k] = pre[at + k] > 0.f ? pre[at + k] : 0.f;
+        dense(weights_t + w_at, biases + b_at, x, in, out, pre + at + in);
+        w_at += out * in; b_at += out; at += in;
+    }
+    const float y = tanhf(pre[at]);
+    *sdf = y;
+    /* backward: g = d y / d (the current layer's output), from the last layer to the first one's pre-activation */
+    float g[MAX_WIDTH], gin[MAX_WIDTH];
+    g[0] = 1.f - y * y;
+    for (int64_t l = L - 1; l >= 0; --l) {
+        const int64_t in = dims[l], out = dims[l + 1];
+        w_at -= out * in; at -= in;
+        dense_back(weights + w_at, g, in, out, gin);
+        for (int64_t k = 0; k < in; ++k) g[k] = pre[at + k] > 0.f ? gin[k] : 0.f;
+    }
+    grad[0] = grad[1] = grad[2] = 0.f;
+    for (int64_t s = 0; s < S; ++s) {
+        float d[3];
+        if (C == 16) point_gradient(table, &c[s], 16, g, d);
+        else point_gradient(table, &c[s], C, g, d);
+        for (int ax = 0; ax < 3; ++ax) grad[ax] += d[ax] * dg[s][ax];
+    }
+}
+
+/* sdf (N,) in units of the truncation, grad (N, 3); returns 0, or -1 for sizes beyond the limits above. */
+int tsdf_with_gradient(const float *points, int64_t N, const float *table, int64_t C, int64_t S,
+                       const int64_t *sizes, const int64_t *offsets, const float *bmin, const float *ext,
+                       const float *bias1, int64_t L, const int64_t *dims, const float *weights,
+                       const float *weights_t, const float *biases, float *sdf, float *grad, int threads) {
+    if (S > MAX_SCALES || L < 1 || L > MAX_LAYERS || dims[0] != C || dims[L] != 1) return -1;
+    for (int64_t l = 0; l <= L; ++l)
+        if (dims[l] < 1 || dims[l] > MAX_WIDTH) return -1;
+    #pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t i = 0; i < N; ++i)
+        tsdf_point(points + 3 * i, table, C, S, sizes, offsets, bmin, ext, bias1, L, dims, weights, weights_t,
+                   biases, sdf + i, grad + 3 * i);
+    return 0;
+}
+
 /* grad_points (N, 3): accumulated (+=). */
 void plane_backward_points(const float *points, int64_t N, const float *table, int64_t C, int64_t S,
                            const int64_t *sizes, const int64_t *offsets, const float *bmin, const float *ext,

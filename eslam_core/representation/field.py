@@ -113,6 +113,7 @@ class FrozenField:
         self._parts = {"sdf": (field.geometry_planes, field.geometry_decoder),
                        "color": (field.appearance_planes, field.appearance_decoder)}
         self._folded: dict[str, tuple] = {}
+        self._packed_layers: dict[str, tuple] = {}
 
     def _fold(self, which: str) -> tuple:
         """(folded table, first-layer bias, [(weight, bias) of the later layers]), built on first use."""
@@ -124,6 +125,18 @@ class FrozenField:
             self._folded[which] = (table, linears[0].bias.detach(),
                                    [(m.weight.detach(), m.bias.detach()) for m in linears[1:]])
         return self._folded[which]
+
+    def _packed(self, which: str) -> tuple[torch.Tensor, ...]:
+        """The layers after the first as the C kernel takes them: widths (in of the first, then each out), weights,
+        weights transposed and biases each in one flat tensor."""
+        if which not in self._packed_layers:
+            _, _, later = self._fold(which)
+            dims = [later[0][0].shape[1]] + [w.shape[0] for w, _ in later]
+            self._packed_layers[which] = (torch.tensor(dims, dtype=torch.int64),
+                                          torch.cat([w.reshape(-1) for w, _ in later]).contiguous(),
+                                          torch.cat([w.T.reshape(-1) for w, _ in later]).contiguous(),
+                                          torch.cat([b.reshape(-1) for _, b in later]).contiguous())
+        return self._packed_layers[which]
 
     def first_layer(self, which: str, points: torch.Tensor) -> torch.Tensor:
         """(N, 3) -> (N, hidden): the pre-activation W_1 f(p) + b_1 of the "sdf" or "color" decoder."""
@@ -145,7 +158,11 @@ class FrozenField:
         for both at every iteration, and on a few thousand points building and running autograd's graph of the
         decoder costs more than its arithmetic."""
         planes, decoder = self._parts["sdf"]
-        _, _, later = self._fold("sdf")
+        table, first_bias, later = self._fold("sdf")
+        if decoder.activation_name == "tanh":
+            fused = planes.tsdf_with_gradient(points, table, first_bias, *self._packed("sdf"))
+            if fused is not None:  # the C kernel: the same in one pass per point
+                return fused
         with torch.no_grad():
             h = self.first_layer("sdf", points)
             inputs = []  # each later layer's input before its ReLU
@@ -157,7 +174,7 @@ class FrozenField:
             for (weight, _), h_in in zip(reversed(later), reversed(inputs)):
                 g = (g @ weight) * (h_in > 0)
             # The first layer's output is the sum over scales of each scale's lookup: the same gradient for each.
-            grad = planes.lookup_gradient(points, self._fold("sdf")[0], g.repeat(1, len(planes.resolutions)))
+            grad = planes.lookup_gradient(points, table, g.repeat(1, len(planes.resolutions)))
         return y.squeeze(-1), grad
 
     def color(self, points: torch.Tensor) -> torch.Tensor:

@@ -215,6 +215,27 @@ class FeaturePlanes(nn.Module):
                                   ctypes.c_int(torch.get_num_threads()))
         return grad
 
+    def tsdf_with_gradient(self, points: torch.Tensor, table: torch.Tensor, bias: torch.Tensor, dims: torch.Tensor,
+                           weights: torch.Tensor, weights_t: torch.Tensor, biases: torch.Tensor
+                           ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The TSDF decoder on a table folded with its first layer (`bias`: that layer's), its later layers packed
+        (`dims` (layers + 1,) int64; `weights`, the same transposed and `biases` each flat, layer after layer) and
+        tanh, with the gradient in the points, in one pass of the C kernel: (N,), (N, 3). None where the kernel
+        cannot serve (no kernel, not CPU float32, layers beyond its limits): the caller computes it with torch."""
+        tensors = (points, table, bias, weights, weights_t, biases)
+        lib = self.kernel() if all(_cpu_float32(t) for t in tensors) else None
+        if lib is None:
+            return None
+        points = points.contiguous()
+        sdf, grad = torch.empty(len(points)), torch.empty(len(points), 3)
+        status = lib.tsdf_with_gradient(
+            pointer(points), ctypes.c_int64(len(points)), pointer(table), ctypes.c_int64(table.shape[1]),
+            ctypes.c_int64(len(self.resolutions)), pointer(self._sizes), pointer(self._offsets),
+            pointer(self.bound_min), pointer(self.bound_extent), pointer(bias), ctypes.c_int64(len(dims) - 1),
+            pointer(dims), pointer(weights), pointer(weights_t), pointer(biases), pointer(sdf), pointer(grad),
+            ctypes.c_int(torch.get_num_threads()))
+        return (sdf, grad) if status == 0 else None
+
     def project(self, weight: torch.Tensor) -> torch.Tensor:
         """The table with each scale's rows multiplied by that scale's block of `weight` (out, scales * channels),
         a linear layer applied to the features: (rows, out). lookup(p, project(W)) summed over scales = W f(p)."""

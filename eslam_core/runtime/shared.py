@@ -307,6 +307,7 @@ class Counter(IntEnum):
     MAP_STEP_S = 33  # mapper: mapping steps (publications in the middle of a step included)
     MAP_MEASURE_S = 34  # mapper: memory and the consistency score after each step
     TRACK_INDEX_S = 35  # tracker: keyframes indexed for relocalization (while it waits for frames, if it does)
+    TRACK_WAIT_S = 36  # tracker: waiting for the mapper (the first map; offline, runtime.max_keyframe_lag)
 
 
 # The stage counters, each with the events it is divided by: (stage, seconds, events, events not timed). The
@@ -318,6 +319,7 @@ STAGES = (
     ("tracker: new keyframe (hand-over)", Counter.TRACK_KEYFRAME_S, Counter.KEYFRAMES, 1),
     ("tracker: keyframe indexed (relocalization)", Counter.TRACK_INDEX_S, Counter.KEYFRAMES, 1),
     ("tracker: pose to the parent", Counter.TRACK_REPORT_S, Counter.TRACKED, 0),
+    ("tracker: waiting for the mapper", Counter.TRACK_WAIT_S, Counter.TRACKED, 0),
     ("mapper: keyframes added (growth, observed space)", Counter.MAP_ADD_S, Counter.MAPPING_STEPS, 1),
     ("mapper: mapping step", Counter.MAP_STEP_S, Counter.MAPPING_STEPS, 1),
     ("mapper: map publication", Counter.PUBLISH_SECONDS, Counter.PUBLISHES, 0),

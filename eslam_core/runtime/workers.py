@@ -513,9 +513,10 @@ class TrackerWorker:
     def _track(self, item) -> None:
         self.faults.check("tracker", self.tracked)
         if self.replica.started:
-            self._wait_for_map()
-            if not self.live and self.cfg.runtime.max_keyframe_lag is not None:
-                self._wait_for_mapper(self.cfg.runtime.max_keyframe_lag)
+            with self.ch.board.timed(Counter.TRACK_WAIT_S):
+                self._wait_for_map()
+                if not self.live and self.cfg.runtime.max_keyframe_lag is not None:
+                    self._wait_for_mapper(self.cfg.runtime.max_keyframe_lag)
             self._refresh_map()
         self.cores.busy(True)
         start = time.monotonic()

@@ -30,7 +30,7 @@ import torch
 
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
-from eslam_core.cpu import denormals_flushed, flat_nonzero
+from eslam_core.cpu import denormals_flushed, flat_nonzero, one_thread
 from eslam_core.representation.field import FoldedMap, FrozenField, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
 from eslam_core.geometry import depth_points_world, so3_exp
@@ -117,7 +117,8 @@ class SDFTracker:
         ref.pose = keyframe.pose.double().to(device)
         return ref
 
-    @denormals_flushed()  # see cpu.py
+    @one_thread()  # see cpu.py (a GPU's work is not split by these threads either)
+    @denormals_flushed()
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
               extent: np.ndarray | None = None, observed: ObservedSpace | None = None,
               keyframe: Keyframe | None = None, map_version: int | None = None) -> TrackingResult:
