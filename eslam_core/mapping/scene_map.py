@@ -105,19 +105,19 @@ class SceneMap:
     def add_keyframe(self, kf: Keyframe) -> None:
         """Take a new keyframe: grow the map to its depth where allowed, mark what stays outside unusable."""
         depth = kf.depth_image().reshape(-1)
-        with_depth = torch.nonzero(depth > 0).squeeze(1)  # stored pixels with depth, the pixels of `points`
+        with_depth = flat_nonzero(depth > 0)  # stored pixels with depth, the pixels of `points`
         points = depth_points_world(self.dirs_cam[kf.frame_pixels(with_depth, self.intr.width)], depth[with_depth],
                                     kf.pose)
         outside = outside_mask(points, self.extent)
         if self.growable and outside.any():  # (only the points outside can make the map grow)
-            beyond = torch.nonzero(outside).squeeze(1)
+            beyond = flat_nonzero(outside)
             self._grow_to(points[beyond], kf.frame_index)
             outside[beyond] = outside_mask(points[beyond], self.extent)
         usable = kf.usable.reshape(-1).clone()
         usable[with_depth[outside]] = False
         kf.usable = usable.reshape(kf.usable.shape)
         self._count_outside(int(outside.sum()), len(points), kf.frame_index)
-        inside = torch.nonzero(~outside).squeeze(1) if outside.any() else None  # None: all of them
+        inside = flat_nonzero(~outside) if outside.any() else None  # None: all of them
         n_inside = len(points) if inside is None else len(inside)
         drawn = torch.randint(n_inside, (500,)) if n_inside else None
         sample = None if drawn is None else points[drawn if inside is None else inside[drawn]]
