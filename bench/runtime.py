@@ -8,9 +8,10 @@ process (so that peak memory is the mode's own): "lockstep" is the single-proces
 and mapping alternate, torch using every core), "pipelined" the two-process runtime (`--workers 2`, offline policy:
 every frame, in order; one torch thread per worker on a 2-core machine).
 
-Timing: frames are read into memory first. Frame 0 (the map's warm-up, identical work in both modes) is timed on
-its own; throughput is then measured from the end of the warm-up until every remaining frame is tracked and every
-keyframe mapped. The whole-run time is reported too. The machine's load average is recorded before and after each
+Timing: frames are read into memory first. Frame 0 (the map's warm-up) is timed on its own, until the first map
+the tracker gets (pipelined with `runtime.first_map_after`, as in `fast`: part way through the warm-up, whose rest
+then counts in the throughput); throughput is then measured from there until every remaining frame is tracked and
+every keyframe mapped. The whole-run time is reported too. The machine's load average is recorded before and after each
 run: on a shared machine use --repeats (runs alternate between the modes) and compare runs taken under the same
 load. OMP_WAIT_POLICY from the environment applies to both modes (the runtime's workers default to PASSIVE).
 Prints a table (frames/s, s/frame, ATE RMSE, peak memory) and the pipelined/lock-step throughput ratio; writes JSON.
