@@ -154,9 +154,9 @@ class FrozenField:
         return self.decode("sdf", self.first_layer("sdf", points)).squeeze(-1)
 
     def sdf_with_gradient(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(N,) normalised TSDF and its gradient in the points (N, 3), the chain rule written out: a tracker asks
-        for both at every iteration, and on a few thousand points building and running autograd's graph of the
-        decoder costs more than its arithmetic."""
+        """(N,) normalised TSDF and its gradient in the points (N, 3), without autograd: a tracker asks for both at
+        every iteration, and on a few thousand points building and running autograd's graph of the decoder costs
+        more than its arithmetic. One pass of the C kernel where it serves, else the chain rule in torch ops."""
         planes, decoder = self._parts["sdf"]
         table, first_bias, later = self._fold("sdf")
         if decoder.activation_name == "tanh":

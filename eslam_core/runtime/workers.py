@@ -789,8 +789,8 @@ class MapperWorker:
         self.iterations += 1
         if self.publishing_mid_step and self.setup.publish_every and self.iterations % self.setup.publish_every == 0:
             self._publish(step_done=False)
-        if self.iterations == self.first_map_at:  # the warm-up's first keyframe counts as mapped from here on
-            self.map.publish(self.scene.field, 1)
+        if self.iterations == self.first_map_at:  # the warm-up's keyframe counts as mapped from here on
+            self._publish()
             self._attach_tracker()
         self._serve_requests()
 
