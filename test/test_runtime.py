@@ -664,3 +664,27 @@ def test_the_tracker_starts_on_the_warm_up_map_after_first_map_after_iterations(
     # every frame tracked on the early map (version 1), before the end of the warm-up (version 2)
     assert early.frames_tracked == len(frames) and early.map_version == 1, early
     assert first_latency[25] < 0.5 * first_latency[None], first_latency
+
+
+def test_live_tracker_poses_frames_by_odometry_while_the_map_warms_up(room_sequence):
+    """Live, a camera streams from its first frame: the frames that come while the first map warms up are posed by
+    the frame-to-frame odometry (never keyframes) instead of being dropped, so tracking starts from a short motion."""
+    cfg = fast_cfg(mapping={"first_iterations": 400, "rays": 500}, tracking={"method": "sdf", "odometry_width": 160})
+    frames = [room_sequence[i] for i in range(10)]
+    rt = make_runtime(cfg, room_sequence.intrinsics, workers=2, policy="live", threads=1)
+    updates = []
+    with rt:
+        for f in frames:
+            rt.submit(f)
+            time.sleep(0.15)  # a camera's pace, slower than the odometry
+            updates += rt.poll()
+        before_map = rt.health()
+        assert before_map.map_version == 0, "the warm-up ended before the frames did: lengthen it"
+        wait_until(lambda: rt.health().map_version >= 1, 120)
+        updates += rt.poll()
+    updates += rt.poll()
+    assert before_map.frames_tracked == len(frames) and before_map.frames_dropped == 0, before_map
+    assert [u.index for u in updates] == [f.index for f in frames]
+    assert not any(u.keyframe for u in updates[1:]) and all(u.quality < 1.0 for u in updates[1:])
+    poses = {u.index: u.pose for u in updates}
+    assert ate_cm([f.timestamp for f in frames], [poses[f.index] for f in frames], frames) < 1.0

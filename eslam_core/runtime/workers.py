@@ -512,6 +512,8 @@ class TrackerWorker:
 
     def _track(self, item) -> None:
         self.faults.check("tracker", self.tracked)
+        if self.live and self.replica.started and self.map is None and self._dead_reckon(item):
+            return
         if self.replica.started:
             with self.ch.board.timed(Counter.TRACK_WAIT_S):
                 self._wait_for_map()
@@ -550,6 +552,27 @@ class TrackerWorker:
         board.add(Counter.TRACKED)
         board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
         board.set(Counter.TRACKER_DEVICE_PEAK_MB, device_peak_mb(self.replica.device))
+
+    def _dead_reckon(self, item) -> bool:
+        """Live, before the first map: the frame's pose from the odometry alone (TrackingFrontEnd.dead_reckon)
+        instead of waiting for the warm-up while the camera's frames are dropped. False where the odometry cannot
+        pose it: the frame then waits for the map."""
+        self.cores.busy(True)
+        start = time.monotonic()
+        board = self.ch.board
+        with board.timed(Counter.TRACK_PREPARE_S):
+            pf = prepare_frame(Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose, item.odom_pose),
+                               self.intr, self.cfg.camera)
+        with board.timed(Counter.TRACK_ALIGN_S):
+            reckoned = self.frontend.dead_reckon(pf, self.trajectory)
+        if reckoned is None:
+            return False
+        record = self.trajectory.record(pf.index, pf.timestamp, reckoned.pose.double().numpy(), reckoned.loss,
+                                        pf.gt_pose, False, reckoned.quality.value, False)
+        self._report(record, False, item.arrival, start)
+        self.tracked += 1
+        board.add(Counter.TRACKED)
+        return True
 
     def _report(self, record, keyframe: bool, arrival: float, start: float) -> None:
         done = time.monotonic()

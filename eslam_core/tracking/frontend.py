@@ -46,6 +46,7 @@ log = logging.getLogger("eslam")
 
 MAX_EXTRAPOLATION = 4.0  # frame gaps the constant-velocity prediction extrapolates over
 MAX_UNINDEXED = 2  # new keyframes waiting for relocalization features (see TrackingFrontEnd.remember)
+DEAD_RECKONED_QUALITY = 0.5  # of a pose from the odometry alone (dead_reckon): trusted less than a tracked one
 
 
 class MapView(Protocol):
@@ -211,6 +212,26 @@ class TrackingFrontEnd:
         quality = tracking_quality(evidence, self.cfg.quality)
         return self._decided(len(trajectory), pose, init, result.loss, quality,
                              None if found is None else found.keyframe_id, pf, odometry_frame)
+
+    def dead_reckon(self, pf: PreparedFrame, trajectory: TrackedTrajectory) -> Optional[TrackedPose]:
+        """A frame that came before there is a map to track against (a live camera streams from its first frame
+        while the map of that frame warms up): its pose from the frame-to-frame odometry alone. The odometry's
+        reference moves on to it, so that the first frame tracked against the map starts from the motion since
+        the last such frame, not from the whole warm-up's (ICL at 30 Hz: 1.6 s, too far for the odometry and the
+        SDF's basin). Never a keyframe: only tracked poses are mapped. None without odometry or where it failed."""
+        if self.odometry is None or self.lost or not self.good or self.odometry.reference_key != self.good[-1]:
+            return None
+        odometry_frame = self.odometry.frame(pf.rgb, pf.depth)
+        motion = self.odometry.motion(odometry_frame)
+        if motion is None:
+            return None
+        position = len(trajectory)
+        pose = torch.from_numpy(orthonormalize(trajectory.pose(self.good[-1]) @ motion)).float()
+        self.good = (self.good + [position])[-2:]
+        self.odometry.set_reference(position, odometry_frame)
+        self._note_odometry(pf, pose.double().numpy())
+        return TrackedPose(pose, pose, float("nan"), False, Quality(DEAD_RECKONED_QUALITY, "odometry only: no map yet",
+                                                                   False), False)
 
     def _prior_holds(self, pf: PreparedFrame) -> bool:
         """Whether the prediction of a lost camera is worth refining without a relocalization match: without a
