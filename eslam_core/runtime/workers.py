@@ -60,7 +60,7 @@ from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config, RuntimeConfig
 from eslam_core.device import peak_memory_mb as device_peak_mb, resolve_device
 from eslam_core.cpu import PeriodicRelease, lower_priority, name_process
-from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics
+from eslam_core.frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.mapper import import_optimiser_code
 from eslam_core.mapping.observed import ObservedSurfaces
@@ -523,9 +523,7 @@ class TrackerWorker:
         self.cores.busy(True)
         start = time.monotonic()
         board = self.ch.board
-        with board.timed(Counter.TRACK_PREPARE_S):
-            pf = prepare_frame(Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose, item.odom_pose),
-                               self.intr, self.cfg.camera)
+        pf = self._prepare(item)
         if not self.replica.started:  # the first frame starts the map; the mapper warms it up
             pose0, keyframe, tracked = self.frontend.first_pose(pf, self.trajectory), True, None
             extent = initial_extent(self.cfg, pf, self.intr, pose0)
@@ -553,6 +551,11 @@ class TrackerWorker:
         board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
         board.set(Counter.TRACKER_DEVICE_PEAK_MB, device_peak_mb(self.replica.device))
 
+    def _prepare(self, item) -> PreparedFrame:
+        with self.ch.board.timed(Counter.TRACK_PREPARE_S):
+            return prepare_frame(Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose,
+                                       item.odom_pose), self.intr, self.cfg.camera)
+
     def _dead_reckon(self, item) -> bool:
         """Live, before the first map: the frame's pose from the odometry alone (TrackingFrontEnd.dead_reckon)
         instead of waiting for the warm-up while the camera's frames are dropped. False where the odometry cannot
@@ -560,9 +563,7 @@ class TrackerWorker:
         self.cores.busy(True)
         start = time.monotonic()
         board = self.ch.board
-        with board.timed(Counter.TRACK_PREPARE_S):
-            pf = prepare_frame(Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose, item.odom_pose),
-                               self.intr, self.cfg.camera)
+        pf = self._prepare(item)
         with board.timed(Counter.TRACK_ALIGN_S):
             reckoned = self.frontend.dead_reckon(pf, self.trajectory)
         if reckoned is None:
