@@ -173,8 +173,10 @@ class FrozenField:
             g = decoder.activation_slope(y)  # d y / d h, then back through the layers to the first one's output
             for (weight, _), h_in in zip(reversed(later), reversed(inputs)):
                 g = (g @ weight) * (h_in > 0)
-            # The first layer's output is the sum over scales of each scale's lookup: the same gradient for each.
-            grad = planes.lookup_gradient(points, table, g.repeat(1, len(planes.resolutions)))
+        # The first layer's output is the sum over scales of each scale's lookup: the same gradient for each.
+        with torch.enable_grad():
+            p = points.detach().requires_grad_(True)
+            (grad,) = torch.autograd.grad(planes.lookup(p, table), p, g.repeat(1, len(planes.resolutions)))
         return y.squeeze(-1), grad
 
     def color(self, points: torch.Tensor) -> torch.Tensor:

@@ -194,27 +194,6 @@ class FeaturePlanes(nn.Module):
         return _FusedLookup.apply(points, table, self._sizes, self._offsets, self.bound_min, self.bound_extent, lib,
                                   sink)
 
-    def lookup_gradient(self, points: torch.Tensor, table: torch.Tensor, grad_features: torch.Tensor) -> torch.Tensor:
-        """(N, 3): the gradient in each point of sum(grad_features * lookup(points, table)), no autograd graph
-        needed (grad_features: (N, scales * table channels))."""
-        lib = self.kernel() if _cpu_float32(points) and _cpu_float32(table) and _cpu_float32(grad_features) \
-            else None
-        if lib is None:
-            with torch.enable_grad():
-                p = points.detach().requires_grad_(True)
-                features = reference_lookup(p, table.detach(), self.bound_min, self.bound_extent, self.layout,
-                                            self.grid_sizes)
-                (grad,) = torch.autograd.grad(features, p, grad_features)
-            return grad
-        points, grad_features = points.contiguous(), grad_features.contiguous()
-        grad = torch.zeros_like(points)
-        lib.plane_backward_points(pointer(points), ctypes.c_int64(len(points)), pointer(table),
-                                  ctypes.c_int64(table.shape[1]), ctypes.c_int64(len(self.resolutions)),
-                                  pointer(self._sizes), pointer(self._offsets), pointer(self.bound_min),
-                                  pointer(self.bound_extent), pointer(grad_features), pointer(grad),
-                                  ctypes.c_int(torch.get_num_threads()))
-        return grad
-
     def tsdf_with_gradient(self, points: torch.Tensor, table: torch.Tensor, bias: torch.Tensor, dims: torch.Tensor,
                            weights: torch.Tensor, weights_t: torch.Tensor, biases: torch.Tensor
                            ) -> tuple[torch.Tensor, torch.Tensor] | None:

@@ -512,8 +512,11 @@ class TrackerWorker:
 
     def _track(self, item) -> None:
         self.faults.check("tracker", self.tracked)
-        if self.live and self.replica.started and self.map is None and self._dead_reckon(item):
-            return
+        pf = None
+        if self.live and self.replica.started and self.map is None:
+            pf = self._prepare(item)
+            if self._dead_reckon(pf, item.arrival):
+                return
         if self.replica.started:
             with self.ch.board.timed(Counter.TRACK_WAIT_S):
                 self._wait_for_map()
@@ -523,7 +526,7 @@ class TrackerWorker:
         self.cores.busy(True)
         start = time.monotonic()
         board = self.ch.board
-        pf = self._prepare(item)
+        pf = pf or self._prepare(item)
         if not self.replica.started:  # the first frame starts the map; the mapper warms it up
             pose0, keyframe, tracked = self.frontend.first_pose(pf, self.trajectory), True, None
             extent = initial_extent(self.cfg, pf, self.intr, pose0)
@@ -556,21 +559,20 @@ class TrackerWorker:
             return prepare_frame(Frame(item.index, item.timestamp, item.rgb, item.depth, item.gt_pose,
                                        item.odom_pose), self.intr, self.cfg.camera)
 
-    def _dead_reckon(self, item) -> bool:
+    def _dead_reckon(self, pf: PreparedFrame, arrival: float) -> bool:
         """Live, before the first map: the frame's pose from the odometry alone (TrackingFrontEnd.dead_reckon)
         instead of waiting for the warm-up while the camera's frames are dropped. False where the odometry cannot
         pose it: the frame then waits for the map."""
         self.cores.busy(True)
         start = time.monotonic()
         board = self.ch.board
-        pf = self._prepare(item)
         with board.timed(Counter.TRACK_ALIGN_S):
             reckoned = self.frontend.dead_reckon(pf, self.trajectory)
         if reckoned is None:
             return False
         record = self.trajectory.record(pf.index, pf.timestamp, reckoned.pose.double().numpy(), reckoned.loss,
                                         pf.gt_pose, False, reckoned.quality.value, False)
-        self._report(record, False, item.arrival, start)
+        self._report(record, False, arrival, start)
         self.tracked += 1
         board.add(Counter.TRACKED)
         return True
