@@ -9,6 +9,7 @@ import logging
 import os
 import queue
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -462,6 +463,10 @@ def test_poll_waits_for_the_next_pose_and_mesh_snapshots_are_light(room_sequence
         field = torch.load(__import__("io").BytesIO(again.field), weights_only=False)
         points = torch.tensor([[0.0, 0.0, 1.0]])
         assert torch.allclose(field.sdf(points), rt.snapshot().map.field.sdf(points), atol=1e-4)
+        if workers == 2:  # the state comes as a file in shared memory, removed once read ...
+            assert os.listdir(rt._snapshot_dir) == []
+            shutil.rmtree(rt._snapshot_dir)  # ... or through the queue where the file cannot be written
+            assert torch.allclose(field.sdf(points), rt.snapshot().map.field.sdf(points), atol=1e-4)
 
 
 # ------------------------------------------------------------------------------------- set-up errors, building blocks

@@ -34,7 +34,9 @@ import multiprocessing.connection
 import multiprocessing.synchronize
 import os
 import queue
+import shutil
 import signal
+import tempfile
 import threading
 import time
 import traceback
@@ -110,6 +112,17 @@ def semaphore_names(*objects) -> list[str]:
             elif isinstance(m, multiprocessing.synchronize.SemLock) and m._semlock.name:
                 names.append(m._semlock.name)
     return names
+
+
+def read_snapshot(state: str | bytes) -> dict:
+    """The scene map's state from the mapper's answer: a file it wrote (mapped, then removed: the mapped pages stay
+    until the tensors go) or bytes."""
+    if isinstance(state, bytes):
+        return torch.load(io.BytesIO(state), weights_only=True)
+    try:
+        return torch.load(state, weights_only=True, mmap=True)
+    finally:
+        os.unlink(state)
 
 
 class MultiProcessRuntime(SavingMixin):
@@ -190,6 +203,8 @@ class MultiProcessRuntime(SavingMixin):
         self._channels = Channels(self._ring, q["to_mapper"], q["to_tracker"], q["to_parent"], q["commands"],
                                   q["answers"], self._board, self._control, self._map_meta)
         self._semaphores = semaphore_names(self._ring.cond, self._map_meta.lock, *self._queues.values())
+        self._snapshot_dir = tempfile.mkdtemp(prefix="eslam-snapshots-",
+                                              dir="/dev/shm" if os.path.isdir("/dev/shm") else None)
         setup = WorkerSetup(self.cfg, self.intrinsics, self.policy, self.threads, os.getpid(),
                             logging.getLogger("eslam").getEffectiveLevel(), self.publish_every,
                             os.environ.get("ESLAM_FAULT", ""), self.lend_threads, self.keyframe_backlog,
@@ -471,11 +486,12 @@ class MultiProcessRuntime(SavingMixin):
             # (in localization every frame anchors the trajectory, and no keyframe goes to the mapper)
             keyframes = self._mirror.keyframes if self.cfg.run.mode == "slam" else 0
             trajectory, epoch = self._mirror.state_dict(), self._epoch
-        state = self._ask_mapper(lambda request_id: SnapshotRequest(request_id, epoch, keyframes),
-                                 "a snapshot of the map")
+        path = os.path.join(self._snapshot_dir, "{}.pt")
+        state = self._ask_mapper(lambda request_id: SnapshotRequest(request_id, epoch, keyframes,
+                                                                    path.format(request_id)), "a snapshot of the map")
         slam = SLAM(self.cfg, self.intrinsics)
         if state is not None:  # else reset meanwhile, or nothing tracked yet
-            slam.map.load_state_dict(torch.load(io.BytesIO(state), weights_only=True))
+            slam.map.load_state_dict(read_snapshot(state))
             slam.trajectory = TrackedTrajectory.from_state_dict(trajectory)
         return slam
 
@@ -594,6 +610,7 @@ class MultiProcessRuntime(SavingMixin):
         # Dropping the last references unlinks the semaphores and unmaps the shared tensors; some of them sit in
         # reference cycles (queues and their feeder threads), so collect now rather than at some later moment.
         self._ring = self._map_meta = self._channels = self._board = self._control = None
+        shutil.rmtree(self._snapshot_dir, ignore_errors=True)  # (files of answers that came too late to be read)
         self._queues, self._processes, self._errors = {}, {}, {}
         gc.collect()
 
