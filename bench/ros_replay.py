@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO))
 
 from eslam_core.cli import parse_frames  # noqa: E402
 from eslam_core.datasets import open_dataset  # noqa: E402
-from eslam_core.evaluation.trajectory import Trajectory, ate  # noqa: E402
+from eslam_core.evaluation.trajectory import Trajectory, ate, write_tum  # noqa: E402
 from eslam_ros.bag import BagTopics, bag_timestamps, play_bag, write_bag  # noqa: E402
 from eslam_ros.qos import use_shipped_fastdds_profile  # noqa: E402
 
@@ -139,6 +139,8 @@ def main() -> int:
                     help="extra node parameter, e.g. eslam.tracking.iterations=6")
     ap.add_argument("--settle", type=float, default=20.0, help="seconds to wait for the last poses after playback")
     ap.add_argument("--out", type=Path, default=Path("bench_ros_replay.json"))
+    ap.add_argument("--trajectory", type=Path, help="also write the published poses here (TUM; for evo or a per-frame "
+                                                    "comparison with an offline run)")
     args = ap.parse_args()
 
     import rclpy
@@ -217,6 +219,8 @@ def main() -> int:
     truth = ds.gt_poses()
     known = [(s, truth[i]) for i, s in enumerate(bag_stamps) if truth[i] is not None and s in listener.poses]
     ate_cm = None
+    if args.trajectory is not None and stamps:
+        write_tum(args.trajectory, Trajectory(np.array(stamps), np.stack([listener.poses[s][1] for s in stamps])))
     if len(known) >= 3:
         est = Trajectory(np.array([s for s, _ in known]), np.stack([listener.poses[s][1] for s, _ in known]))
         ref = Trajectory(est.timestamps, np.stack([p for _, p in known]))
