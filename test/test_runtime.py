@@ -33,6 +33,7 @@ from eslam_core.slam import new_keyframe
 from eslam_core.trajectory import FrameRecord, TrackedTrajectory
 from eslam_core.runtime import RuntimeCrashed, RuntimeSetupError, make_runtime
 from eslam_core.runtime.api import RateMeter
+from eslam_core.runtime.multiprocess import snapshot_directory
 from eslam_core.runtime import workers
 from eslam_core.runtime.shared import STAGES, Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap, \
     stage_profile
@@ -307,7 +308,7 @@ if __name__ == "__main__":
     rt = make_runtime(load_config("demo"), Intrinsics(32, 24, 30.0, 30.0, 16.0, 12.0), workers=2)
     rt.start()
     r = rt.resources()
-    print(" ".join(map(str, r["pids"].values())), " ".join(r["shm"]), flush=True)
+    print(r["snapshot_dir"], " ".join(map(str, r["pids"].values())), " ".join(r["shm"]), flush=True)
     time.sleep(120)
 """
 
@@ -321,11 +322,15 @@ def test_workers_die_with_a_killed_parent(tmp_path):
     finally:
         proc.kill()  # SIGKILL: no chance to clean up
     proc.wait(10)
-    assert len(words) > 2, proc.stderr.read()
-    pids, shm = [int(w) for w in words[:2]], words[2:]
+    assert len(words) > 3, proc.stderr.read()
+    snapshot_dir, pids, shm = Path(words[0]), [int(w) for w in words[1:3]], words[3:]
     assert wait_until(lambda: not any(alive(p) for p in pids), 5)
-    # multiprocessing's resource tracker unlinks the semaphores of a killed parent.
+    # multiprocessing's resource tracker unlinks the semaphores of a killed parent ...
     assert wait_until(lambda: not any(Path(p).exists() for p in shm), 10)
+    # ... and the next runtime's start removes its snapshot directory.
+    assert snapshot_dir.is_dir()
+    shutil.rmtree(snapshot_directory())
+    assert not snapshot_dir.exists()
 
 
 # ------------------------------------------------------------------------------------------------- live policy

@@ -26,6 +26,7 @@ step instead, so it returns within about one optimiser iteration.
 from __future__ import annotations
 
 import gc
+import glob
 import io
 import itertools
 import logging
@@ -112,6 +113,30 @@ def semaphore_names(*objects) -> list[str]:
             elif isinstance(m, multiprocessing.synchronize.SemLock) and m._semlock.name:
                 names.append(m._semlock.name)
     return names
+
+
+SNAPSHOT_DIR_PREFIX = "eslam-snapshots-"
+
+
+def process_exists(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's
+        pass
+    return True
+
+
+def snapshot_directory() -> str:
+    """A new directory in shared memory (RAM) for the mapper's snapshot files, named after this process. Those of
+    processes that are gone are removed first: a SIGKILLed parent cannot remove its own."""
+    root = "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
+    for path in glob.glob(os.path.join(root, SNAPSHOT_DIR_PREFIX + "*")):
+        pid = os.path.basename(path)[len(SNAPSHOT_DIR_PREFIX):].split("-")[0]
+        if pid.isdigit() and not process_exists(int(pid)):
+            shutil.rmtree(path, ignore_errors=True)
+    return tempfile.mkdtemp(prefix=f"{SNAPSHOT_DIR_PREFIX}{os.getpid()}-", dir=root)
 
 
 def read_snapshot(state: str | bytes) -> dict:
@@ -203,8 +228,7 @@ class MultiProcessRuntime(SavingMixin):
         self._channels = Channels(self._ring, q["to_mapper"], q["to_tracker"], q["to_parent"], q["commands"],
                                   q["answers"], self._board, self._control, self._map_meta)
         self._semaphores = semaphore_names(self._ring.cond, self._map_meta.lock, *self._queues.values())
-        self._snapshot_dir = tempfile.mkdtemp(prefix="eslam-snapshots-",
-                                              dir="/dev/shm" if os.path.isdir("/dev/shm") else None)
+        self._snapshot_dir = snapshot_directory()
         setup = WorkerSetup(self.cfg, self.intrinsics, self.policy, self.threads, os.getpid(),
                             logging.getLogger("eslam").getEffectiveLevel(), self.publish_every,
                             os.environ.get("ESLAM_FAULT", ""), self.lend_threads, self.keyframe_backlog,
@@ -616,9 +640,10 @@ class MultiProcessRuntime(SavingMixin):
 
     # ------------------------------------------------------------------------------------------- diagnostics
     def resources(self) -> dict:
-        """Worker pids ({"tracker": pid, "mapper": pid}) and the /dev/shm entries this runtime created (for tests
-        and for debugging shutdown)."""
-        return {"pids": dict(self._worker_pids), "shm": [f"/dev/shm/sem.{n.lstrip('/')}" for n in self._semaphores]}
+        """Worker pids ({"tracker": pid, "mapper": pid}), the /dev/shm entries of this runtime's semaphores and its
+        snapshot directory (for tests and for debugging shutdown)."""
+        return {"pids": dict(self._worker_pids), "shm": [f"/dev/shm/sem.{n.lstrip('/')}" for n in self._semaphores],
+                "snapshot_dir": self._snapshot_dir}
 
     def __enter__(self) -> "MultiProcessRuntime":
         if not self._started:
