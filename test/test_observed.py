@@ -2,7 +2,7 @@
 import numpy as np
 import torch
 
-from eslam_core.mapping.observed import ObservedSpace
+from eslam_core.mapping.observed import ObservedSpace, ObservedSurfaces
 
 
 def test_points_near_observed_surface_are_inside_and_far_ones_are_not():
@@ -63,3 +63,29 @@ def test_a_grown_grid_keeps_every_observed_voxel_where_it_was():
             needed = np.ceil((bound[1] - bound[0]) / space.voxel - 1e-6)
             assert all(s <= g == n for g, s, n in zip(space.shape, before, needed))
             assert bool(space.contains(surface).all()) and int(space.seen.sum()) == seen
+
+
+def test_settled_space_waits_for_newer_keyframes():
+    """With observed_after = 3 a keyframe's surface joins observed space once the next keyframe is mapped, and
+    settled space once the third after it is; the tracker aligns to settled space unless it holds too little."""
+    def point(k):  # on keyframe k's surface: voxel (2k + 1, 0, 0), two voxels from the next one's
+        return torch.tensor([[0.15 + 0.2 * k, 0.05, 0.05]])
+
+    observed = ObservedSurfaces(np.array([[0.0, 0.0, 0.0], [1.2, 1.0, 1.0]]), 0.1, after=3)
+    for k in range(6):
+        observed.add_keyframe(point(k))
+    joined, settled = [], []
+    for mapped in range(1, 7):
+        observed.mapped(mapped)
+        joined.append(observed.joined)
+        settled.append(observed.settled_count)
+    assert joined == [1, 1, 2, 3, 4, 5]  # the first after its warm-up; keyframe 1 once keyframe 2 is mapped
+    assert settled == [1, 1, 1, 1, 2, 3]  # keyframe 1 once keyframe 4 is mapped
+    assert bool(observed.settled.seen[5, 0, 0]) and not bool(observed.settled.seen[7, 0, 0])
+    assert bool(observed.space.seen[9, 0, 0]) and not bool(observed.space.seen[11, 0, 0])
+    used, seen = observed.alignable(torch.cat([point(0), point(1), point(3), point(5)]))
+    assert seen.tolist() == [True, True, True, False] and used.tolist() == [True, True, False, False]
+    used, seen = observed.alignable(torch.cat([point(3), point(4), point(4), point(0)]))  # settled: 1 of 4
+    assert used.tolist() == seen.tolist() == [True, True, True, True]
+    observed.settle_all()
+    assert observed.settled_count == observed.joined == 6 and not observed.pending

@@ -586,8 +586,9 @@ def test_trajectory_mirror_applies_refinements_in_any_order():
 
 def test_pipelined_tracker_observes_only_what_the_map_is_fitted_to(room_sequence):
     """Space of a keyframe the mapper has not mapped yet is not observed: its SDF is still the old map's. Nor is
-    the newest mapped keyframe's (one step leaves new space rough), except the first one's after its warm-up."""
-    cfg = fast_cfg(tracking={"method": "sdf"})
+    that of the newest mapped keyframes (one step leaves new space rough; `tracking.observed_after` newer keyframes
+    must be mapped), except the first one's after its warm-up."""
+    cfg = fast_cfg(tracking={"method": "sdf", "observed_after": 1})
     intr = room_sequence.intrinsics
     replica = workers.MapReplica(cfg, intr, pixel_directions_table(intr))
     frames = [prepare_frame(room_sequence[i], intr, cfg.camera) for i in (0, 4, 8)]
@@ -603,6 +604,8 @@ def test_pipelined_tracker_observes_only_what_the_map_is_fitted_to(room_sequence
     assert int(observed.space.seen.sum()) == first and len(observed.pending) == 2
     observed.mapped(3)
     assert int(observed.space.seen.sum()) > first and len(observed.pending) == 1
+    observed.settle_all()  # a loaded map: every keyframe
+    assert len(observed.pending) == 0 and observed.joined == 3
 
 
 def test_mapper_catches_up_only_when_a_newer_keyframe_waits(monkeypatch):

@@ -86,25 +86,47 @@ def grow_by_one_voxel(grid: torch.Tensor) -> torch.Tensor:
 class ObservedSurfaces:
     """Observed space fed with the keyframes' surface points as mapping fits them. The newest keyframe's single
     mapping step shares the rays with the whole window and leaves space seen for the first time rough: a keyframe
-    joins after the step that follows its own; the first one after its warm-up."""
+    joins observed space (`space`) after the step that follows its own, the first one after its warm-up. The steps
+    of the next keyframes, whose windows hold it, go on fitting it: a keyframe joins settled space (`settled`) once
+    `after` newer keyframes are mapped. The SDF tracker aligns to settled space where it can (see `alignable`)."""
 
-    def __init__(self, bound: np.ndarray, voxel: float, device: torch.device | str | None = None):
+    def __init__(self, bound: np.ndarray, voxel: float, device: torch.device | str | None = None, after: int = 1):
         self.space = ObservedSpace(bound, voxel, device)
-        self.pending: deque = deque()  # surface points of keyframes not joined yet, oldest first
-        self.joined = 0
+        self.settled = ObservedSpace(bound, voxel, device)
+        self.pending: deque = deque()  # surface points of keyframes not settled yet, oldest first
+        self.joined = 0  # keyframes in observed space
+        self.settled_count = 0  # keyframes in settled space (the first ones of those joined)
+        self.after = after
 
     def add_keyframe(self, points: torch.Tensor) -> None:
         self.pending.append(points)
 
     def mapped(self, keyframes: int) -> None:
         """The map is now fitted to the first `keyframes` keyframes."""
-        trusted = min(keyframes, max(1, keyframes - 1))
-        while self.joined < trusted and self.pending:
-            self.space.add(self.pending.popleft())
+        observed, settled = (min(keyframes, max(1, keyframes - lag)) for lag in (1, self.after))
+        while self.joined < observed and self.joined - self.settled_count < len(self.pending):
+            self.space.add(self.pending[self.joined - self.settled_count])
             self.joined += 1
+        while self.settled_count < min(settled, self.joined):
+            self.settled.add(self.pending.popleft())
+            self.settled_count += 1
+
+    def settle_all(self) -> None:
+        """Every keyframe joins both: a loaded map's fitting is over."""
+        self.mapped(self.settled_count + len(self.pending) + self.after)
 
     def grow(self, bound: np.ndarray) -> None:
         self.space = self.space.grown(bound)
+        self.settled = self.settled.grown(bound)
+
+    def alignable(self, points: torch.Tensor, settled_share: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
+        """The points to align the frame with and those in observed space. Those in settled space, unless they are
+        fewer than `settled_share` of those in observed space: a camera turning towards new space outruns settled
+        space (it lags `after` keyframes), and aligning a few points there lost the long room's camera (test_growth),
+        so then those in observed space."""
+        seen = self.space.contains(points)
+        settled = self.settled.contains(points) & seen
+        return (settled if settled.sum() >= settled_share * seen.sum() else seen), seen
 
     def contains(self, points: torch.Tensor) -> torch.Tensor:
         return self.space.contains(points)

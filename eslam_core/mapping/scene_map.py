@@ -97,7 +97,8 @@ class SceneMap:
         self.extent = np.asarray(extent, dtype=np.float64)
         self.field = SceneField(self.extent, self.cfg.model, self.device)
         self.version += 1
-        self.observed = ObservedSurfaces(self.extent, self.cfg.model.truncation, self.device)
+        self.observed = ObservedSurfaces(self.extent, self.cfg.model.truncation, self.device,
+                                         self.cfg.tracking.observed_after)
         log.info("map: %d parameters (%.1f MB) over %s", self.field.parameter_count(), self.field.nbytes() / 2**20,
                  np.round(self.extent, 3).tolist())
 
@@ -250,7 +251,7 @@ class SceneMap:
         if self.observed is not None:
             for kf in self.keyframes:
                 self.observed.add_keyframe(surface_points(self.dirs_cam, kf, self.intr.width))
-            self.observed.mapped(len(self.keyframes))
+            self.observed.settle_all()
         self.points_outside, self.points_seen = state["points_outside"], state["points_seen"]
         self.rng.bit_generator.state = state["rng"]
         counts = state.get("counts", {})  # (checkpoints of version 3 written before the counts were kept)

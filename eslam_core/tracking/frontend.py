@@ -197,7 +197,7 @@ class TrackingFrontEnd:
             if found is not None:
                 init = torch.from_numpy(orthonormalize(found.pose)).float()
         # (The extent test uses the starting pose: a few centimetres off at most, and it saves a second pass.)
-        result = self.tracker.track(view.field, pf, init, view.extent, view.observed.space, view.newest_keyframe(),
+        result = self.tracker.track(view.field, pf, init, view.extent, view.observed, view.newest_keyframe(),
                                     view.version)
         pose = result.pose
         if not torch.isfinite(pose).all():  # a diverged optimisation must not poison the trajectory and the map

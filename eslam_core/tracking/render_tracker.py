@@ -24,7 +24,7 @@ from eslam_core.geometry import depth_points_world, params_to_pose, pose_to_para
 from eslam_core.mapping.extent import outside_mask
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.rendering.losses import eslam_losses
-from eslam_core.mapping.observed import ObservedSpace
+from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.rendering.volume import render_rays
 
 
@@ -101,7 +101,7 @@ class Tracker:
 
     @denormals_flushed()  # see cpu.py
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
-              extent: np.ndarray | None = None, observed: ObservedSpace | None = None,
+              extent: np.ndarray | None = None, observed: ObservedSurfaces | None = None,
               keyframe: Keyframe | None = None, map_version: int | None = None) -> TrackingResult:
         """Rays are drawn from pixels whose depth point lies in `extent` (the map's) at the starting pose, from a
         pool of 8 x `tracking.rays` of them; `observed` restricts the rays with `tracking.observed_only`
@@ -152,7 +152,7 @@ class Tracker:
         return TrackingResult(best_pose.cpu(), float(best_loss), len(candidates), depth_fraction, float(best_inliers))
 
     def _in_observed_space(self, candidates: torch.Tensor, depth: torch.Tensor, pose: torch.Tensor,
-                           observed: ObservedSpace) -> torch.Tensor:
+                           observed: ObservedSurfaces) -> torch.Tensor:
         """The candidate pixels whose depth point lies in observed space, or all of them if that is under half:
         then the frame mostly sees new space, and rays through it still constrain the pose better than few rays."""
         seen = observed.contains(depth_points_world(self.dirs_cam[candidates], depth[candidates], pose))

@@ -35,7 +35,7 @@ from eslam_core.representation.field import FoldedMap, FrozenField, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
 from eslam_core.geometry import depth_points_world, so3_exp
 from eslam_core.mapping.keyframes import Keyframe
-from eslam_core.mapping.observed import ObservedSpace
+from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.tracking.photometric import Reference, grey_pyramid, photometric_residuals, sample, to_grey
 from eslam_core.tracking.render_tracker import TrackingResult, draw_in_extent
 
@@ -120,7 +120,7 @@ class SDFTracker:
     @one_thread()  # see cpu.py (a GPU's work is not split by these threads either)
     @denormals_flushed()
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
-              extent: np.ndarray | None = None, observed: ObservedSpace | None = None,
+              extent: np.ndarray | None = None, observed: ObservedSurfaces | None = None,
               keyframe: Keyframe | None = None, map_version: int | None = None) -> TrackingResult:
         """Align the frame's depth points inside `extent` (the map's, at the starting pose) to the map (SDF and,
         with `color_weight`, the map's colour) and, with `photometric_weight`, to the images of `keyframe`
@@ -146,7 +146,7 @@ class SDFTracker:
             grey_current = [sample(level[None, None], u, v, 2.0**i)[:, 0].double()
                             for i, level in enumerate(grey_pyramid(image, len(ref.levels)))]
         R, t = start[:3, :3].double(), start[:3, 3].double()
-        used = photo_used = None  # the points scored, fixed at the initial pose so that costs compare
+        used = photo_used = seen = None  # the points scored, fixed at the initial pose so that costs compare
         best_cost, best_Rt, inliers = float("inf"), None, 0.0
         fixed = self._folded.of(field, map_version)  # the map does not change while tracking
         for it in range(tc.iterations + 1):  # the last pass only scores the final pose
@@ -158,8 +158,8 @@ class SDFTracker:
             # photometric residuals there): the first (the prediction), the fine ones and the final one are.
             scored = it == 0 or level == 0
             if used is None:
-                used = observed.contains(x.float()) if observed is not None else \
-                    torch.ones(len(x), dtype=torch.bool, device=device)
+                used, seen = observed.alignable(x.float()) if observed is not None else \
+                    (torch.ones(len(x), dtype=torch.bool, device=device),) * 2
                 if used.sum() < 30:
                     break
             band = used & (sdf.abs() < 0.99 * T)
@@ -210,5 +210,5 @@ class SDFTracker:
         if best_Rt is not None:
             best = torch.eye(4)
             best[:3, :3], best[:3, 3] = best_Rt[0].float().cpu(), best_Rt[1].float().cpu()
-        observed_fraction = float(used.float().mean()) if used is not None else float("nan")
+        observed_fraction = float(seen.float().mean()) if seen is not None else float("nan")
         return TrackingResult(best, best_cost, len(pix), depth_fraction, inliers, observed_fraction)
