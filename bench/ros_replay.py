@@ -85,9 +85,10 @@ def warmed_up(status: dict) -> bool:
     return int(status.get("map_version", 0)) > 0 and int(status.get("keyframe_queue_depth", 1)) == 0
 
 
-def process_tree_cpu(root: int) -> dict[str, float]:
-    """CPU seconds (user + system) of `root` and its descendants, by process name (/proc/<pid>/comm: the
-    runtime's workers name themselves eslam-tracker, eslam-mapper, eslam-mesh); Linux only, else empty."""
+def process_tree_cpu(root: int) -> dict[int, tuple[str, float]]:
+    """Name and CPU seconds (user + system) of `root` and each of its descendants, by pid (names from
+    /proc/<pid>/stat: the runtime's workers name themselves eslam-tracker, eslam-mapper, eslam-mesh; the root is
+    "node"); Linux only, else empty."""
     stats = {}
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
@@ -103,11 +104,19 @@ def process_tree_cpu(root: int) -> dict[str, float]:
         children = [pid for pid, (_, ppid, _) in stats.items() if ppid == parent and pid not in tree]
         tree.update(children)
         frontier += children
-    cpu: dict[str, float] = {}
-    for pid in tree & set(stats):
-        name = "node" if pid == root else stats[pid][0]
-        cpu[name] = cpu.get(name, 0.0) + stats[pid][2]
-    return cpu
+    return {pid: ("node" if pid == root else stats[pid][0], stats[pid][2]) for pid in tree & set(stats)}
+
+
+def cpu_shares(before: dict[int, tuple[str, float]], after: dict[int, tuple[str, float]],
+               seconds: float) -> dict[str, float]:
+    """% of one core by process name between two `process_tree_cpu` readings, per pid (a process that started in
+    between counts from zero; one that ended is not seen, and a pid reused under another name starts again)."""
+    shares: dict[str, float] = {}
+    for pid, (name, cpu) in after.items():
+        old_name, old_cpu = before.get(pid, (name, 0.0))
+        used = cpu - old_cpu if old_name == name else cpu
+        shares[name] = shares.get(name, 0.0) + 100 * used / seconds
+    return shares
 
 
 def print_profile(status: dict) -> None:
@@ -191,8 +200,7 @@ def main() -> int:
         played = play_bag(bag, rate=args.rate, wait_for_subscribers=60.0, qos=qos)
         end_of_play = time.monotonic()
         cpu_after, bench_after = process_tree_cpu(node.pid), time.process_time()
-        cpu_share = {name: 100 * (cpu_after[name] - cpu_before.get(name, 0.0)) / (end_of_play - play_start)
-                     for name in cpu_after}
+        cpu_share = cpu_shares(cpu_before, cpu_after, end_of_play - play_start)
         cpu_share["this benchmark (player, listener)"] = 100 * (bench_after - bench_before) / (end_of_play - play_start)
         last = len(listener.poses)
         while time.monotonic() - end_of_play < args.settle:  # the node may still be tracking queued frames
