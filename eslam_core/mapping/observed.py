@@ -124,8 +124,7 @@ class ObservedSurfaces:
         fewer than `settled_share` of those in observed space: a camera turning towards new space outruns settled
         space (it lags `after` keyframes), and aligning a few points there lost the long room's camera (test_growth),
         so then those in observed space."""
-        seen = self.space.contains(points)
-        settled = self.settled.contains(points) & seen
+        seen, settled = self.space.contains(points), self.settled.contains(points)  # settled within seen
         return (settled if settled.sum() >= settled_share * seen.sum() else seen), seen
 
     def contains(self, points: torch.Tensor) -> torch.Tensor:

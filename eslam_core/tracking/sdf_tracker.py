@@ -18,7 +18,8 @@ iteration instead of rendering ~40 samples per ray.
 Only points inside the truncation band (where the SDF has a gradient and the colour is the surface's) give map
 residuals. The cost that picks the best pose counts every point, a saturated one at the largest penalty; otherwise a
 pose that pushed points out of the band (or out of the keyframe's view) would look good. Points on space no mapped
-keyframe has seen are left out (see observed.py).
+keyframe has seen are left out, and where enough of them lie on settled surface (mapped over several steps) only
+those are aligned (see observed.py).
 
 The alignment runs on the map's device, the small 6x6 systems included; the choice of the best pose and the stopping
 tests read a few numbers back per iteration (six iterations per frame), the pose comes back once.
