@@ -179,7 +179,7 @@ class TrackingConfig:
               "must be 'track' or 'external' (poses from external odometry, mapping only)")
         check(self.huber > 0, "tracking.huber", "must be positive (metres)")
         check(self.observed_after >= 1, "tracking.observed_after",
-              "must be >= 1 (a keyframe's surface needs its own mapping step and at least one more)")
+              "must be >= 1 (1: the tracker aligns to all of observed space)")
         check(self.color_huber > 0, "tracking.color_huber", "must be positive (grey level)")
         check(self.color_weight >= 0, "tracking.color_weight", "must be >= 0 (0 disables the map's colour term)")
         check(self.photometric_huber > 0, "tracking.photometric_huber", "must be positive (grey level)")

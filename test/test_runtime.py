@@ -586,8 +586,8 @@ def test_trajectory_mirror_applies_refinements_in_any_order():
 
 def test_pipelined_tracker_observes_only_what_the_map_is_fitted_to(room_sequence):
     """Space of a keyframe the mapper has not mapped yet is not observed: its SDF is still the old map's. Nor is
-    that of the newest mapped keyframes (one step leaves new space rough; `tracking.observed_after` newer keyframes
-    must be mapped), except the first one's after its warm-up."""
+    the newest mapped keyframe's (one step leaves new space rough), except the first one's after its warm-up.
+    (`observed_after` 1: settled space is observed space, so `pending` holds exactly the keyframes not joined.)"""
     cfg = fast_cfg(tracking={"method": "sdf", "observed_after": 1})
     intr = room_sequence.intrinsics
     replica = workers.MapReplica(cfg, intr, pixel_directions_table(intr))
