@@ -6,6 +6,7 @@ stop the run cleanly: the trajectory so far and a checkpoint are written (no mes
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import signal
@@ -21,6 +22,7 @@ from tqdm import tqdm
 
 from eslam_core.config import Config, save_config
 from eslam_core.datasets import RGBDDataset
+from eslam_core.datasets.read_ahead import ReadAhead
 from eslam_core.evaluation.trajectory import ate
 from eslam_core.outputs.export import estimated_trajectory, ground_truth_trajectory, load_checkpoint, map_mesh, save_checkpoint, \
     write_trajectories
@@ -181,6 +183,7 @@ def run_with_runtime(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_l
         raise ValueError("--resume continues a lock-step run only: use --workers 1 with --resume "
                          "(or start a new run without --resume)")
     rt = make_runtime(cfg, dataset.intrinsics, workers=workers, policy=policy, **options)
+    read_ahead = policy == "offline" and cfg.runtime.read_ahead > 0  # a live policy reads at the camera's rate
     bar = tqdm(total=len(dataset), desc="eslam", unit="frame", disable=not progress, dynamic_ncols=True)
 
     def show(updates: list) -> None:
@@ -190,7 +193,8 @@ def run_with_runtime(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_l
             bar.set_postfix(frame=updates[-1].index, fps=f"{h.tracking_hz:.2f}", dropped=h.frames_dropped,
                             loss=f"{updates[-1].tracking_loss:.4f}")
 
-    with StopRequest() as stop:
+    reader = ReadAhead(dataset, cfg.runtime.read_ahead) if read_ahead else contextlib.nullcontext(dataset)
+    with StopRequest() as stop, reader as source:
         rt.start()
         start = time.perf_counter()
         try:
@@ -198,7 +202,7 @@ def run_with_runtime(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_l
             for i in range(len(dataset)):
                 if stop.requested:
                     break
-                frame = dataset[i]
+                frame = source[i]
                 if policy == "live":  # as a camera would deliver them
                     if wall0 is None:
                         wall0, data0 = time.monotonic(), frame.timestamp
@@ -227,6 +231,7 @@ def run_with_runtime(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_l
     figures = rt.worker_figures() if hasattr(rt, "worker_figures") else {}
     peak = peak_rss_mb() + figures.get("tracker_peak_mb", 0.0) + figures.get("mapper_peak_mb", 0.0)
     extra = {"runtime": {"workers": workers, "policy": policy, "stopped_by": stop.requested,
+                         "frames_read_ahead": reader.read_ahead if read_ahead else 0,
                          "health": health.as_dict(), "workers_figures": figures,
                          "peak_memory_note": "sum of the peaks of the parent and worker processes"}}
     return write_outputs(cfg, slam, dataset, out_dir, data_label=data_label, frames=frames,

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,7 @@ from eslam_core.datasets import (
     detect_kind,
     open_dataset,
 )
+from eslam_core.datasets.read_ahead import ReadAhead
 from eslam_core.datasets.tum import ICL_NUIM_INTRINSICS, associate_timestamps, nearest_within
 from eslam_core.datasets.replica import REPLICA_INTRINSICS
 from eslam_core.datasets.sevenscenes import SEVEN_SCENES_COLOUR_INTRINSICS, SEVEN_SCENES_INTRINSICS
@@ -576,6 +578,49 @@ def test_indexing_iteration_and_subset_views(tmp_path):
     pose = ds[0].pose
     pose[:] = 0.0  # frames hand out copies: the data set's poses cannot be corrupted by a caller
     np.testing.assert_allclose(ds[0].pose, truth["poses"][0])
+
+
+def seven_frames(seq: Path) -> list[np.ndarray]:
+    """7-Scenes frames 0-6 in `seq`; their colour images."""
+    rgbs = write_7scenes(seq)["rgb"]
+    for k in range(3, 7):
+        rgbs.append(random_rgb(np.random.default_rng(k)))
+        save_rgb(seq / f"frame-{k:06d}.color.png", rgbs[-1])
+        save_png16(seq / f"frame-{k:06d}.depth.png", random_raw_depth(np.random.default_rng(k), 1000.0))
+    return rgbs
+
+
+def test_read_ahead_hands_out_the_frames_it_read_before_and_reads_at_most_its_capacity(tmp_path):
+    rgbs = seven_frames(tmp_path / "seq-01")
+    ds = open_dataset(tmp_path / "seq-01", intrinsics=SMALL)
+    with ReadAhead(ds, capacity=3) as frames:
+        assert frames.ready == 0  # nothing is read before the first frame is taken
+        np.testing.assert_array_equal(frames[0].rgb, rgbs[0])
+        deadline = time.monotonic() + 30.0
+        while frames.ready < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.2)
+        assert frames.ready == 3  # frames 1-3, and no further
+        for image in (tmp_path / "seq-01").glob("*.png"):
+            image.unlink()
+        for k in (1, 2, 3):  # from memory: their files are gone
+            frame = frames[k]
+            assert frame.index == k
+            np.testing.assert_array_equal(frame.rgb, rgbs[k])
+        with pytest.raises(DatasetError, match="frame-000004"):  # not read ahead: the caller's own read fails
+            frames[4]
+        assert frames.read_ahead == 3
+    assert frames.ready == 0  # closing drops what was read ahead
+
+
+def test_read_ahead_skips_frames_the_caller_has_passed(tmp_path):
+    rgbs = seven_frames(tmp_path / "seq-01")
+    ds = open_dataset(tmp_path / "seq-01", intrinsics=SMALL)
+    with ReadAhead(ds, capacity=2) as frames:
+        for k in (0, 4, 5, 6):
+            np.testing.assert_array_equal(frames[k].rgb, rgbs[k])
+    with pytest.raises(ValueError, match="capacity"):
+        ReadAhead(ds, capacity=0)
 
 
 # --- detection and errors -----------------------------------------------------------------------------------------
