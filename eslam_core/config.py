@@ -354,7 +354,8 @@ class RuntimeConfig:
     capacity: int = 8  # frames in the input buffer
     # Offline runs through the runtime (`eslam run --workers 2`): frames decoded ahead, beyond the input buffer, by
     # a thread that only gets CPU time no other work wants (datasets/read_ahead.py; 0 = none). About 2 MB a
-    # 640 x 480 frame. ICL office, 300 frames, `fast`: 23.2 -> 26.3 frames/s (README, session 20).
+    # 640 x 480 frame. `fast` on the 300 ICL office frames, runs alternating (README, session 20): 21.8-26.9
+    # frames/s without (median 25.4, 11 runs), 25.1-27.4 with 64 (median 27.1, 7 runs).
     read_ahead: int = 64
     # Pipelined mapper: optimiser iterations between mid-step map publications (0 = only after each step). A step
     # starts a new Adam, whose first iterations move every touched feature by about the learning rate: read
