@@ -76,11 +76,12 @@ class PeriodicRelease:
 
 
 def lower_priority(nice: int, pid: int = 0) -> None:
-    """Give a process (0: this one; on Linux its main thread, whose later threads inherit it) the nice value
-    `nice`, where the platform has nice values. Nice 19 also means Linux's SCHED_IDLE policy: CPU time that no
-    other process wants. A nice-19 process still counts as load on its CPU, so a waking mapper was queued behind
-    it on its CPU rather than placed there, and the mesh process took a third of a core from the mapper on 2
-    cores; a CPU that runs only SCHED_IDLE work counts as idle when the scheduler places a waking process."""
+    """Give a process (0: this one; on Linux its main thread, whose later threads inherit it; on Linux also a single
+    thread, by its `threading.get_native_id()`) the nice value `nice`, where the platform has nice values. Nice 19
+    also means Linux's SCHED_IDLE policy: CPU time that no other process wants. A nice-19 process still counts as
+    load on its CPU, so a waking mapper was queued behind it on its CPU rather than placed there, and the mesh
+    process took a third of a core from the mapper on 2 cores; a CPU that runs only SCHED_IDLE work counts as idle
+    when the scheduler places a waking process."""
     try:
         os.setpriority(os.PRIO_PROCESS, pid, nice)
         if nice >= 19 and hasattr(os, "SCHED_IDLE"):

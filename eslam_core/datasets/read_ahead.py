@@ -18,8 +18,8 @@ from eslam_core.datasets.base import Frame, RGBDDataset
 
 
 class ReadAhead:
-    """`dataset[i]` for increasing `i`, with up to `capacity` frames beyond the last one taken read ahead (from the
-    first one taken on: a run's set-up is not the time to decode its frames)."""
+    """`dataset[i]` for increasing `i` (one caller), with up to `capacity` frames beyond the last one taken read
+    ahead (from the first one taken on: a run's set-up is not the time to decode its frames)."""
 
     def __init__(self, dataset: RGBDDataset, capacity: int):
         if capacity < 1:
