@@ -543,12 +543,18 @@ def test_rotations_that_are_not_rotations_are_refused(tmp_path):
 # --- the Sequence behaviour and subset() ----------------------------------------------------------------------------
 
 
+def seven_frames(seq: Path) -> dict:
+    """7-Scenes frames 0-6 in `seq` (poses for frames 0-2 only): `write_7scenes`'s truth, colour of all seven."""
+    truth = write_7scenes(seq)
+    for k in range(3, 7):
+        truth["rgb"].append(random_rgb(np.random.default_rng(k)))
+        save_rgb(seq / f"frame-{k:06d}.color.png", truth["rgb"][-1])
+        save_png16(seq / f"frame-{k:06d}.depth.png", random_raw_depth(np.random.default_rng(k), 1000.0))
+    return truth
+
+
 def test_indexing_iteration_and_subset_views(tmp_path):
-    truth = write_7scenes(tmp_path / "seq-01")
-    for k in range(3, 7):  # 7 frames in all
-        raw = random_raw_depth(np.random.default_rng(k), 1000.0)
-        save_rgb(tmp_path / "seq-01" / f"frame-{k:06d}.color.png", random_rgb(np.random.default_rng(k)))
-        save_png16(tmp_path / "seq-01" / f"frame-{k:06d}.depth.png", raw)
+    truth = seven_frames(tmp_path / "seq-01")
     ds = open_dataset(tmp_path / "seq-01", intrinsics=SMALL)
     assert isinstance(ds, RGBDDataset) and len(ds) == 7
     assert ds[-1].timestamp == pytest.approx(6 / 30) and ds[-7].timestamp == 0.0
@@ -580,18 +586,8 @@ def test_indexing_iteration_and_subset_views(tmp_path):
     np.testing.assert_allclose(ds[0].pose, truth["poses"][0])
 
 
-def seven_frames(seq: Path) -> list[np.ndarray]:
-    """7-Scenes frames 0-6 in `seq`; their colour images."""
-    rgbs = write_7scenes(seq)["rgb"]
-    for k in range(3, 7):
-        rgbs.append(random_rgb(np.random.default_rng(k)))
-        save_rgb(seq / f"frame-{k:06d}.color.png", rgbs[-1])
-        save_png16(seq / f"frame-{k:06d}.depth.png", random_raw_depth(np.random.default_rng(k), 1000.0))
-    return rgbs
-
-
 def test_read_ahead_hands_out_the_frames_it_read_before_and_reads_at_most_its_capacity(tmp_path):
-    rgbs = seven_frames(tmp_path / "seq-01")
+    rgbs = seven_frames(tmp_path / "seq-01")["rgb"]
     ds = open_dataset(tmp_path / "seq-01", intrinsics=SMALL)
     with ReadAhead(ds, capacity=3) as frames:
         assert frames.ready == 0  # nothing is read before the first frame is taken
@@ -613,8 +609,8 @@ def test_read_ahead_hands_out_the_frames_it_read_before_and_reads_at_most_its_ca
     assert frames.ready == 0  # closing drops what was read ahead
 
 
-def test_read_ahead_skips_frames_the_caller_has_passed(tmp_path):
-    rgbs = seven_frames(tmp_path / "seq-01")
+def test_read_ahead_gives_the_right_frames_when_the_caller_jumps_ahead(tmp_path):
+    rgbs = seven_frames(tmp_path / "seq-01")["rgb"]
     ds = open_dataset(tmp_path / "seq-01", intrinsics=SMALL)
     with ReadAhead(ds, capacity=2) as frames:
         for k in (0, 4, 5, 6):
