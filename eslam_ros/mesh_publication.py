@@ -18,10 +18,11 @@ Late subscribers
     The publisher stays transient local, so that subscribers configured that way still match.
 Cost
     Meshing runs in a process at nice 19 (`BackgroundMesher`): the node's process only takes the map snapshot and
-    writes the message bytes. Each job meshes for at most `mesh_time_budget` seconds (dirty blocks first), so the
-    first mesh of a large map arrives in pieces, one message each, rather than after one long stall. A new snapshot
-    is taken every `mesh_period` seconds when the map changed; until then, jobs continue on the last one while
-    blocks are still dirty. The figures of the last job are in ~/status (`mesh_*`).
+    writes the message bytes, from the soups the mesh process leaves in shared memory (it keeps every block; a full
+    message is a job that asks for all of them). Each job meshes for at most `mesh_time_budget` seconds (dirty
+    blocks first), so the first mesh of a large map arrives in pieces, one message each, rather than after one long
+    stall. A new snapshot is taken every `mesh_period` seconds when the map changed; until then, jobs continue on
+    the last one while blocks are still dirty. The figures of the last job are in ~/status (`mesh_*`).
 """
 from __future__ import annotations
 
@@ -76,9 +77,9 @@ class MeshPublication:
         self._last_sent = -float("inf")
         self.mesher = BackgroundMesher(resolution, block_size, budget_s, triangle_budget, nice)
         self.figures = MeshFigures()
-        self._blocks: dict[tuple, TriangleBlock] = {}  # what subscribers have
+        self._published: set[tuple] = set()  # the blocks subscribers have
         self._lock = threading.Lock()
-        self._full_wanted = False
+        self._full_wanted = False  # set without the lock: the executor's thread must not wait for a mesh message
         self._meshed_version: Any = None  # map version of the last snapshot
         self._last_snapshot = -float("inf")
 
@@ -87,19 +88,12 @@ class MeshPublication:
     def subscriber_matched(self, status: Any) -> None:
         """Publisher matched-event callback: a new subscriber gets every block at the next tick."""
         if getattr(status, "current_count_change", 1) > 0:
-            with self._lock:
-                self._full_wanted = True
+            self._full_wanted = True
 
     def reset(self) -> None:
         """A new map: subscribers drop every block (the one DELETEALL), the mesh process forgets the old map."""
         with self._lock:
-            self.mesher.reset()
-            self._blocks.clear()
-            self._meshed_version, self._last_snapshot = None, -float("inf")
-            self.figures.blocks = self.figures.triangles = self.figures.blocks_pending = 0
-            self._publish(serialize_block_markers({}, [], self.frame_id, self._now(), NAMESPACE, delete_all=True))
-            self.figures.publications += 1
-            self._since_full = 0  # an empty map, completely described
+            self._forget_map()
 
     def close(self) -> None:
         with self._lock:
@@ -131,12 +125,6 @@ class MeshPublication:
                 return
             if update is not None:
                 self._apply(update)
-            resting = (self._since_full and not self.mesher.busy and not self.mesher.pending
-                       and time.monotonic() - self._last_sent >= self.rest_s)
-            if self._full_wanted or resting:
-                self._full_wanted = False
-                if self._blocks:
-                    self._send(self._blocks, [], full=True)
             if self.mesher.busy:
                 return
             epoch, have = self.mesher.epoch, self.mesher.have()
@@ -144,7 +132,7 @@ class MeshPublication:
             due = (bool(map_version) and map_version != self._meshed_version
                    and time.monotonic() - self._last_snapshot >= self.period)
             if not due:
-                if self.mesher.pending:
+                if self.mesher.pending or self._full_due():
                     self._submit(None)
                 return
         start = time.monotonic()
@@ -160,9 +148,22 @@ class MeshPublication:
             self.figures.snapshot_ms_last = 1000 * (time.monotonic() - start)
             self._submit(snapshot)
 
+    def _full_due(self) -> bool:
+        """Every block is wanted now: by a new subscriber, or because the mesh rests (see "Late subscribers")."""
+        if not self._published:
+            self._full_wanted = False  # nothing to send yet; the first blocks reach every subscriber anyway
+            return False
+        resting = (self._since_full and not self.mesher.pending
+                   and time.monotonic() - self._last_sent >= self.rest_s)
+        return self._full_wanted or bool(resting)
+
     def _submit(self, snapshot: MeshSnapshot | PackedSnapshot | None) -> None:
+        """Start a job; it brings every block back (a full message) when one is due or the FULL_EVERY-th is next."""
+        everything = self._full_due() or (bool(self._published) and self._since_full + 1 >= self.full_every)
+        if everything:
+            self._full_wanted = False
         try:
-            self.mesher.submit(snapshot)
+            self.mesher.submit(snapshot, everything=everything)
         except MesherCrashed as error:
             self._restart(f"{error}; restarting it and clearing the published mesh")
 
@@ -182,14 +183,12 @@ class MeshPublication:
         f.job_ms_last, f.job_cpu_ms_last = 1000 * update.wall_s, 1000 * update.cpu_s
         f.cpu_s_total += update.cpu_s
         changed = {key: TriangleBlock(corners, colors) for key, (corners, colors) in update.changed.items()}
-        removed = [key for key in update.removed if key in self._blocks]
-        for key in removed:
-            del self._blocks[key]
-        self._blocks.update(changed)
+        removed = [key for key in update.removed if key in self._published]
+        self._published.difference_update(removed)
+        self._published.update(changed)
         f.blocks, f.triangles = update.blocks, update.triangles
-        if changed or removed:
-            full = self._since_full + 1 >= self.full_every
-            self._send(self._blocks if full else changed, removed, full)
+        if update.everything or changed or removed:
+            self._send(changed, removed, update.everything)
 
     def _send(self, blocks: dict, removed: list, full: bool) -> None:
         start = time.monotonic()
@@ -206,13 +205,17 @@ class MeshPublication:
         """The mesh process died: a fresh one rebuilds every block, so subscribers drop theirs first."""
         self.figures.errors += 1
         self.log.error(message, throttle_duration_sec=30.0)
+        self._forget_map()
+
+    def _forget_map(self) -> None:
+        """Subscribers drop every block (the one DELETEALL), the mesh process forgets the old map."""
         self.mesher.reset()
-        self._blocks.clear()
+        self._published.clear()
         self._meshed_version, self._last_snapshot = None, -float("inf")
         self.figures.blocks = self.figures.triangles = self.figures.blocks_pending = 0
         self._publish(serialize_block_markers({}, [], self.frame_id, self._now(), NAMESPACE, delete_all=True))
         self.figures.publications += 1
-        self._since_full = 0
+        self._since_full = 0  # an empty map, completely described
 
     def status(self) -> dict[str, Any]:
         """The figures for ~/status, named `mesh_<figure>` (and the older `meshes_published`, `mesh_triangles`)."""

@@ -263,6 +263,13 @@ def test_mesh_process_reports_changes_under_its_budget_and_forgets_on_reset():
             blocks.update(update.changed)
         assert len(blocks) == update.blocks >= 6 and update.stride == 1 and update.cpu_s > 0
         assert sum(len(c) for c, _ in blocks.values()) == 3 * update.triangles
+        # Asked for everything, a job with nothing to mesh brings back every block, as first sent (shared memory).
+        m.submit(None, everything=True)
+        every = wait(m)
+        assert every.everything and every.meshed == 0 and set(every.changed) == set(blocks)
+        for key, (corners, colors) in every.changed.items():
+            np.testing.assert_array_equal(corners, blocks[key][0])
+            np.testing.assert_array_equal(colors, blocks[key][1])
         # Depth images are sent once: the next snapshot carries none, and an unchanged map reports nothing.
         assert m.have() == {0, 1}
         m.submit(snapshot_of([BALL, SMALL], have=m.have()))

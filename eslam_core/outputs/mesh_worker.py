@@ -10,12 +10,14 @@ Protocol (one job at a time; the caller waits for a job's `MeshUpdate` before it
     caller                                   mesh process
     submit(snapshot)      ---- map ---->     IncrementalMesher.update(view, budget) ----+
     submit(None)          ---- continue -->  (same map: the blocks still dirty)          |
+    submit(.., everything=True)  -------->   (the same, and every block comes back, not only the changed ones)
     poll() -> MeshUpdate  <--- blocks -------------------------------------------------+
     reset()               ---- reset --->    forget everything (a new map)
 A snapshot carries the field and every keyframe pose, but only the depth images the process does not have yet; it
 travels as a PackedSnapshot, pickled into shared memory by whoever took it (in the runtime: the mapping process).
-Blocks come back as triangle soups (corners float64, RGBA float32), thinned to the triangle budget, ready to be
-written into a message without another copy.
+Blocks come back as triangle soups (corners float64, RGBA float32), thinned to the triangle budget, in one
+shared-memory buffer (PackedSoups): the caller writes them into a message from there, without another copy. The
+process keeps every block, so the caller keeps none: it asks for all of them when it needs them all.
 """
 from __future__ import annotations
 
@@ -68,12 +70,43 @@ class MeshSnapshot:
 
 
 @dataclass
+class PackedSoups:
+    """Triangle soups of map blocks in one shared-memory buffer: the corners (float64) of every block, then their
+    colours (float32). Pickled through the pipe instead, the 10 MB of an 80 k-triangle update held the ROS node's
+    interpreter lock for 5-7 ms to unpickle, and its poses waited."""
+
+    keys: list
+    triangles: list  # per block
+    data: Optional[torch.Tensor] = None  # uint8, in shared memory; None without triangles
+
+    @staticmethod
+    def of(soups: dict[Key, tuple[np.ndarray, np.ndarray]]) -> "PackedSoups":
+        keys = list(soups)
+        triangles = [len(soups[key][0]) // 3 for key in keys]
+        if not sum(triangles):
+            return PackedSoups(keys, triangles)
+        packed = PackedSoups(keys, triangles, torch.empty(sum(triangles) * 120, dtype=torch.uint8).share_memory_())
+        for (corners, colors), (out_corners, out_colors) in zip(soups.values(), packed.unpack().values()):
+            out_corners[:], out_colors[:] = corners, colors
+        return packed
+
+    def unpack(self) -> dict[Key, tuple[np.ndarray, np.ndarray]]:
+        """Block -> (corners (3T, 3) float64, colours (3T, 4) float32), views of the buffer."""
+        total = 3 * sum(self.triangles)
+        raw = self.data.numpy() if self.data is not None else np.zeros(0, np.uint8)
+        corners, colors = raw[:24 * total].view("<f8").reshape(-1, 3), raw[24 * total:].view("<f4").reshape(-1, 4)
+        ends = np.cumsum([0] + [3 * t for t in self.triangles])
+        return {key: (corners[a:b], colors[a:b]) for key, a, b in zip(self.keys, ends[:-1], ends[1:])}
+
+
+@dataclass
 class MeshUpdate:
     """What a job changed: blocks to (re)draw and blocks to delete, and what it cost."""
 
     epoch: int
-    changed: dict[Key, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # soups: corners, colours
+    soups: PackedSoups = field(default_factory=lambda: PackedSoups([], []))  # the blocks to (re)draw
     removed: list[Key] = field(default_factory=list)
+    everything: bool = False  # `soups` has every block of the map (asked for), not only the changed ones
     blocks: int = 0  # non-empty blocks after the update
     triangles: int = 0  # triangles sent for them in all (after thinning)
     stride: int = 1  # every stride-th triangle is sent
@@ -82,6 +115,11 @@ class MeshUpdate:
     wall_s: float = 0.0
     cpu_s: float = 0.0
     error: str = ""  # the traceback of a job that failed (the process goes on)
+
+    @property
+    def changed(self) -> dict[Key, tuple[np.ndarray, np.ndarray]]:
+        """Blocks to (re)draw: soups (corners, colours)."""
+        return self.soups.unpack()
 
 
 @dataclass
@@ -128,6 +166,7 @@ class _Setup:
 class _Job:
     epoch: int
     snapshot: Optional[PackedSnapshot]  # None: continue on the last map
+    everything: bool  # send every block, not only the changed ones
 
 
 @dataclass(frozen=True)
@@ -150,7 +189,7 @@ class _Worker:
         self.depths: dict = {}
         self.stride = 1
 
-    def run(self, epoch: int, snapshot: Optional[MeshSnapshot]) -> MeshUpdate:
+    def run(self, epoch: int, snapshot: Optional[MeshSnapshot], everything: bool = False) -> MeshUpdate:
         wall, cpu = time.monotonic(), time.process_time()
         if snapshot is not None:
             self.view = self._view(snapshot)
@@ -162,7 +201,8 @@ class _Worker:
         changes = self.mesher.update(self.view, self.setup.budget_s)
         blocks = self.mesher.blocks
         stride = thinning_stride(sum(b.triangles for b in blocks.values()), self.setup.triangle_budget)
-        resend = blocks if stride != self.stride else changes.changed  # a new stride thins every block anew
+        # A new stride thins every block anew.
+        resend = blocks if everything or stride != self.stride else changes.changed
         self.stride = stride
 
         def block_stride(block) -> int:  # the map's stride, or more for a block too big for one marker
@@ -170,8 +210,8 @@ class _Worker:
 
         soups = {key: triangle_soup(blocks[key], block_stride(blocks[key])) for key in resend}
         triangles = sum(-(-b.triangles // block_stride(b)) for b in blocks.values())
-        return MeshUpdate(epoch, soups, changes.removed, len(blocks), triangles, stride, changes.meshed,
-                          changes.pending, time.monotonic() - wall, time.process_time() - cpu)
+        return MeshUpdate(epoch, PackedSoups.of(soups), changes.removed, everything, len(blocks), triangles, stride,
+                          changes.meshed, changes.pending, time.monotonic() - wall, time.process_time() - cpu)
 
     def _view(self, snapshot: MeshSnapshot) -> MapView:
         # Bytes the caller's torch.save wrote, through a private pipe (not a file): the module is unpickled whole.
@@ -219,7 +259,7 @@ def _serve(connection, setup: _Setup) -> None:
             worker.reset()
             continue
         try:
-            update = worker.run(message.epoch, message.snapshot and message.snapshot.unpack())
+            update = worker.run(message.epoch, message.snapshot and message.snapshot.unpack(), message.everything)
         except Exception:  # noqa: BLE001 - reported to the caller; the next job starts from a fresh mesher
             update = MeshUpdate(message.epoch, error=traceback.format_exc())
             worker.reset()
@@ -274,9 +314,10 @@ class BackgroundMesher:
             raise MesherCrashed(f"the mesh process did not start (exit code {code}; see its output above)")
         self.busy, self.pending, self._have = False, 0, set()
 
-    def submit(self, snapshot: MeshSnapshot | PackedSnapshot | None) -> None:
+    def submit(self, snapshot: MeshSnapshot | PackedSnapshot | None, everything: bool = False) -> None:
         """Start a job: mesh this map (its depth images for the keyframes the process has not got yet), or continue
-        with the blocks still dirty on the last one (None)."""
+        with the blocks still dirty on the last one (None); `everything`: its update has every block, not only the
+        changed ones."""
         if self.busy:
             raise RuntimeError("the mesh process is busy: poll() for its update before submitting another job")
         if not self.running:
@@ -285,7 +326,7 @@ class BackgroundMesher:
             snapshot = PackedSnapshot.of(snapshot)
         if snapshot is not None:
             self._have = set(snapshot.keyframe_ids)
-        self._send(_Job(self.epoch, snapshot))
+        self._send(_Job(self.epoch, snapshot, everything))
         self.busy = True
 
     def have(self) -> set:
