@@ -85,7 +85,9 @@ class PackedSoups:
         triangles = [len(soups[key][0]) // 3 for key in keys]
         if not sum(triangles):
             return PackedSoups(keys, triangles)
-        packed = PackedSoups(keys, triangles, torch.empty(sum(triangles) * 120, dtype=torch.uint8).share_memory_())
+        per_triangle = 3 * (3 * 8 + 4 * 4)  # three corners, each xyz float64 and RGBA float32
+        packed = PackedSoups(keys, triangles,
+                             torch.empty(sum(triangles) * per_triangle, dtype=torch.uint8).share_memory_())
         for (corners, colors), (out_corners, out_colors) in zip(soups.values(), packed.unpack().values()):
             out_corners[:], out_colors[:] = corners, colors
         return packed
