@@ -35,7 +35,10 @@ from eslam_ros.conversions import Stamp, to_time
 
 # Colour of a mesh given without vertex colours: light grey, opaque.
 DEFAULT_MESH_COLOR = (0.8, 0.8, 0.8, 1.0)
-# CDR encapsulation header: representation CDR_LE (0x0001), options 0. rmw_fastrtps writes the same.
+# Bytes of a TRIANGLE_LIST marker per triangle corner (a float64 point and a float32 RGBA colour), and about those
+# of the rest of a marker (header, pose, scale, empty fields).
+CORNER_BYTES = 3 * 8 + 4 * 4
+MARKER_BYTES = 200
 
 
 class InvalidMeshError(ValueError):
@@ -184,6 +187,22 @@ def block_marker_id(key: tuple[int, int, int]) -> int:
     only if they are a multiple of 1024 blocks apart (a kilometre at 1 m blocks)."""
     i, j, k = (int(c) & 0x3FF for c in key)
     return (i << 20) | (j << 10) | k
+
+
+def block_message_parts(blocks: Mapping[tuple[int, int, int], TriangleBlock],
+                        max_bytes: int) -> list[dict[tuple[int, int, int], TriangleBlock]]:
+    """`blocks` cut into consecutive parts of at most about `max_bytes` of message each (a block larger than that
+    is a part of its own); one empty part when there are no blocks."""
+    parts: list[dict] = [{}]
+    size = 0
+    for key, block in blocks.items():
+        block_bytes = MARKER_BYTES + CORNER_BYTES * len(block.corners)
+        if parts[-1] and size + block_bytes > max_bytes:
+            parts.append({})
+            size = 0
+        parts[-1][key] = block
+        size += block_bytes
+    return parts
 
 
 def serialize_block_markers(

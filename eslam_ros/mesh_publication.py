@@ -3,25 +3,29 @@
 What a subscriber gets
     The map is cut into world blocks (`mesh_block_size`, integer block coordinates; see
     eslam_core/outputs/mesh_blocks.py), one TRIANGLE_LIST marker per block, its id derived from the block's
-    coordinates. Each message on ~/mesh carries only what changed since the previous one: an ADD for every block
+    coordinates. Each update on ~/mesh carries only what changed since the previous one: an ADD for every block
     whose surface changed (the same id, so RViz and Foxglove replace just that block) and a DELETE for every block
-    that became empty. A DELETEALL is sent only when the map is reset.
+    that became empty. An update is one message, or several of at most about a megabyte when it is larger (see
+    "Cost"). A DELETEALL is sent only when the map is reset.
 Late subscribers
     A message holds only changes, so the last one alone (what transient local keeps) does not give a newcomer the
     map. A full message (an ADD for every current block; subscribers that have them just redraw them) is published
     - when a subscription matches the publisher: a new RViz display, `ros2 bag record`, a foxglove_bridge that
       subscribes once per client (ros-foxglove-bridge);
-    - as every FULL_EVERY-th message: any viewer has the whole map within that many messages, also behind a bridge
+    - as every FULL_EVERY-th update: any viewer has the whole map within that many messages, also behind a bridge
       that subscribes once and hands its cached last message to new clients (the foxglove-sdk bridge);
     - once when the mesh rests (nothing sent for `rest_s` after a change): so the last message, the one transient
       local keeps and bridges cache, is complete whenever the map is not changing.
-    The publisher stays transient local, so that subscribers configured that way still match.
+    A full update is always one message, however large. The publisher stays transient local, so that subscribers
+    configured that way still match.
 Cost
     Meshing runs in a process at nice 19 (`BackgroundMesher`): the node's process only takes the map snapshot and
     writes the message bytes, from the soups the mesh process leaves in shared memory (it keeps every block; a full
     message is a job that asks for all of them). Each job meshes for at most `mesh_time_budget` seconds (dirty
-    blocks first), so the first mesh of a large map arrives in pieces, one message each, rather than after one long
-    stall. A new snapshot is taken every `mesh_period` seconds when the map changed; until then, jobs continue on
+    blocks first), so the first mesh of a large map arrives in pieces, one update each, rather than after one long
+    stall. rclpy holds the interpreter lock while it publishes (tens of milliseconds for a message of several
+    megabytes on 2 busy cores), which delayed the poses published from the node's other thread: an update that is
+    not full is cut into messages of at most MAX_MESSAGE_BYTES, with a short pause between them. A new snapshot is taken every `mesh_period` seconds when the map changed; until then, jobs continue on
     the last one while blocks are still dirty. The figures of the last job are in ~/status (`mesh_*`).
 """
 from __future__ import annotations
@@ -33,12 +37,15 @@ from typing import Any, Callable, Optional
 
 from eslam_core.outputs.mesh import EmptyMeshError
 from eslam_core.outputs.mesh_worker import BackgroundMesher, MesherCrashed, MeshSnapshot, MeshUpdate, PackedSnapshot
-from eslam_ros.mesh_markers import TriangleBlock, serialize_block_markers
+from eslam_ros.mesh_markers import TriangleBlock, block_message_parts, serialize_block_markers
 
 # Seconds between two looks at the mesh process (its results, new subscribers, the next job).
 MESH_POLL_S = 0.2
-# Every this many messages one carries every block (see "Late subscribers").
+# Every this many updates one carries every block (see "Late subscribers").
 FULL_EVERY = 10
+# Messages of an update that is not full (see "Cost"), and the pause between them.
+MAX_MESSAGE_BYTES = 1 << 20
+PART_PAUSE_S = 0.002
 NAMESPACE = "eslam_mesh"
 
 
@@ -191,10 +198,17 @@ class MeshPublication:
             self._send(changed, removed, update.everything)
 
     def _send(self, blocks: dict, removed: list, full: bool) -> None:
+        """Publish an update: a full one as one message (see "Late subscribers"), the others in parts of at most
+        MAX_MESSAGE_BYTES, with a pause between them for the node's other threads (see "Cost")."""
         start = time.monotonic()
-        self._publish(serialize_block_markers(blocks, removed, self.frame_id, self._now(), NAMESPACE))
+        parts = [blocks] if full else block_message_parts(blocks, MAX_MESSAGE_BYTES)
+        for number, part in enumerate(parts):
+            if number:
+                time.sleep(PART_PAUSE_S)
+            data = serialize_block_markers(part, [] if number else removed, self.frame_id, self._now(), NAMESPACE)
+            self._publish(data)
         f = self.figures
-        f.publications += 1
+        f.publications += len(parts)
         f.full_publications += int(full)
         f.blocks_sent_last, f.blocks_deleted_last = len(blocks), len(removed)
         f.publish_ms_last = 1000 * (time.monotonic() - start)

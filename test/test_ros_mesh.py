@@ -24,7 +24,9 @@ from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import Marker, MarkerArray
 
 from eslam_ros.conversions import camera_info_from_intrinsics, depth_to_image, rgb_to_image
-from eslam_ros.mesh_markers import TriangleBlock, block_marker_id, serialize_block_markers
+from eslam_ros import mesh_publication
+from eslam_ros.mesh_markers import (CORNER_BYTES, TriangleBlock, block_marker_id, block_message_parts,
+                                    serialize_block_markers)
 from eslam_ros.mesh_publication import MeshPublication
 from eslam_ros.qos import latched_qos
 from test_mesh_blocks import BALL, BLOCK, RES, SMALL, snapshot_of
@@ -85,6 +87,48 @@ def test_block_markers_decode_with_ids_from_block_coordinates():
     keys = [(i, j, k) for i in range(-3, 4) for j in range(-3, 4) for k in range(-3, 4)]
     ids = {block_marker_id(key) for key in keys}
     assert len(ids) == len(keys) and all(0 <= i < 2**31 for i in ids)
+
+
+def test_blocks_are_cut_into_messages_of_at_most_the_size_asked():
+    blocks = {(i, 0, 0): TriangleBlock(np.zeros((3 * n, 3)), None) for i, n in enumerate([100, 300, 50, 2000, 10])}
+    parts = block_message_parts(blocks, 500 * 3 * CORNER_BYTES)
+    assert [list(part) for part in parts] == [[(0, 0, 0), (1, 0, 0), (2, 0, 0)], [(3, 0, 0)], [(4, 0, 0)]]
+    for part in parts:  # the estimate is the message's size, to within the fixed fields of each marker
+        size = len(serialize_block_markers(part, [], "map", 0.0))
+        assert size <= 500 * 3 * CORNER_BYTES + 300 * len(part) or len(part) == 1
+    assert block_message_parts({}, 1000) == [{}]
+
+
+def test_a_large_update_comes_in_several_messages_and_a_full_one_in_one(monkeypatch):
+    """Updates over MAX_MESSAGE_BYTES are cut (rclpy holds the interpreter lock while it publishes one message, and
+    the node's poses wait); a full update stays one message (the last message must hold the whole map)."""
+    monkeypatch.setattr(mesh_publication, "MAX_MESSAGE_BYTES", 1)  # every block a message of its own
+    sent: list[MarkerArray] = []
+    publication = MeshPublication(lambda data: sent.append(deserialize_message(data, MarkerArray)), "map",
+                                  lambda: 0.0, rclpy.logging.get_logger("mesh_test"), resolution=RES,
+                                  block_size=BLOCK, period=0.0, budget_s=1e9, triangle_budget=10**6, rest_s=1e9)
+
+    def step_until(condition, timeout=60.0):
+        deadline = time.monotonic() + timeout
+        while not condition() and time.monotonic() < deadline:
+            publication.step(1, lambda have: None)
+            time.sleep(0.02)
+        return condition()
+
+    try:
+        publication.step(1, lambda have: snapshot_of([BALL, SMALL], have))
+        assert step_until(lambda: sent and not publication.mesher.busy), publication.status()
+        ids = [m.id for message in sent for m in message.markers]
+        assert len(sent) >= 6 and all(len(message.markers) == 1 for message in sent)
+        assert len(set(ids)) == len(ids) and {m.action for message in sent for m in message.markers} == {Marker.ADD}
+        assert publication.status()["meshes_published"] == len(sent)
+
+        count = len(sent)
+        publication.subscriber_matched(None)  # a newcomer: every block, in one message
+        assert step_until(lambda: len(sent) > count and not publication.mesher.busy)
+        assert len(sent) == count + 1 and sorted(m.id for m in sent[-1].markers) == sorted(ids)
+    finally:
+        publication.close()
 
 
 def test_only_changed_blocks_are_sent_and_a_late_subscriber_gets_them_all(ros):
