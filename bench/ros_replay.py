@@ -179,7 +179,13 @@ def main() -> int:
     listener = Listener()
     executor = SingleThreadedExecutor()
     executor.add_node(listener.node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+    stop_spinning = threading.Event()
+
+    def spin() -> None:
+        while not stop_spinning.is_set():
+            executor.spin_once(timeout_sec=0.1)
+
+    spinner = threading.Thread(target=spin, daemon=True)
     spinner.start()
     try:
         qos = "sensor_data" if args.policy == "live" else "reliable"
@@ -216,7 +222,12 @@ def main() -> int:
                 node.wait(120)
             except subprocess.TimeoutExpired:
                 os.killpg(node.pid, signal.SIGKILL)
+        # The spinning thread ends before the executor and the context go: left spinning, it made this process
+        # abort (SIGABRT) at exit in about one run of ten, after its results were written.
+        stop_spinning.set()
+        spinner.join()
         executor.shutdown()
+        listener.node.destroy_node()
         rclpy.try_shutdown()
 
     stamps = sorted(listener.poses)

@@ -25,7 +25,10 @@ Cost
     blocks first), so the first mesh of a large map arrives in pieces, one update each, rather than after one long
     stall. rclpy holds the interpreter lock while it publishes (tens of milliseconds for a message of several
     megabytes on 2 busy cores), which delayed the poses published from the node's other thread: an update that is
-    not full is cut into messages of at most MAX_MESSAGE_BYTES, with a short pause between them. A new snapshot is taken every `mesh_period` seconds when the map changed; until then, jobs continue on
+    not full is cut into messages of at most MAX_MESSAGE_BYTES, with a short pause between them. Even at SCHED_IDLE
+    the mesh process slows the tracker's slowest frames (caches and memory are shared), so it works at most `duty`
+    of the time: after a job of t seconds the next starts t * (1 / duty - 1) seconds later. The process is started
+    at the first tick, so that its seconds of importing torch are over before the first frames. A new snapshot is taken every `mesh_period` seconds when the map changed; until then, jobs continue on
     the last one while blocks are still dirty. The figures of the last job are in ~/status (`mesh_*`).
 """
 from __future__ import annotations
@@ -75,9 +78,12 @@ class MeshPublication:
 
     def __init__(self, publish: Callable[[bytes], None], frame_id: str, now: Callable[[], Any], logger: Any, *,
                  resolution: float, block_size: float, period: float, budget_s: float, triangle_budget: int,
-                 nice: int = 19, full_every: int = FULL_EVERY, rest_s: Optional[float] = None) -> None:
+                 nice: int = 19, duty: float = 1.0, full_every: int = FULL_EVERY,
+                 rest_s: Optional[float] = None) -> None:
         self._publish, self.frame_id, self._now, self.log = publish, frame_id, now, logger
-        self.period = period
+        if not 0 < duty <= 1:
+            raise ValueError(f"mesh duty ({duty}) must be in (0, 1]: the share of the time the mesh process works")
+        self.period, self.duty = period, duty
         self.full_every = full_every
         self.rest_s = max(2 * period, 2.0) if rest_s is None else rest_s
         self._since_full = 0  # messages since the last full one
@@ -89,6 +95,7 @@ class MeshPublication:
         self._full_wanted = False  # set without the lock: the executor's thread must not wait for a mesh message
         self._meshed_version: Any = None  # map version of the last snapshot
         self._last_snapshot = -float("inf")
+        self._rest_until = -float("inf")  # no job starts before (see "Cost")
 
     # ------------------------------------------------------------------------------------------ events
 
@@ -116,7 +123,7 @@ class MeshPublication:
         """Publish the mesh process's update if one is ready, every block if a subscriber is new, and start the
         next job when one is due: a new snapshot (`take_snapshot(ids of the keyframes whose depth the process
         has)`) every `period` seconds if the map version changed, else a continuation while blocks are dirty."""
-        if map_version and not self.mesher.running:
+        if not self.mesher.running:
             # Outside the lock (seconds: a new interpreter imports torch), so that reset() never waits for it.
             try:
                 self.mesher.start()
@@ -132,7 +139,8 @@ class MeshPublication:
                 return
             if update is not None:
                 self._apply(update)
-            if self.mesher.busy:
+                self._rest_until = time.monotonic() + update.wall_s * (1.0 / self.duty - 1.0)
+            if self.mesher.busy or time.monotonic() < self._rest_until:
                 return
             epoch, have = self.mesher.epoch, self.mesher.have()
             # Version 0: nothing fitted yet (a still random map would only cost time to mesh).

@@ -88,6 +88,8 @@ class NodeSettings:
                                                              "marker per block, re-sent only when its surface changed")
     mesh_time_budget: float = _param(0.5, "mesh_time_budget", "seconds of meshing per ~/mesh message: a large map is "
                                                               "meshed in pieces, changed blocks first")
+    mesh_duty: float = _param(0.4, "mesh_duty", "most share of the time the mesh process works (after a job of t s "
+                                                "it rests t * (1 / mesh_duty - 1) s): its work slows tracking")
     mesh_nice: int = _param(19, "mesh_nice", "nice value (0-19) of the mesh process: 19 = Linux's SCHED_IDLE, only CPU "
                                              "time that no other process wants")
     path_period: float = _param(1.0, "path_period", "seconds between ~/path publications")
@@ -170,6 +172,8 @@ class NodeSettings:
               "must be a positive number of metres")
         check(math.isfinite(self.mesh_time_budget) and self.mesh_time_budget > 0, "mesh_time_budget",
               "must be a positive number of seconds")
+        check(math.isfinite(self.mesh_duty) and 0 < self.mesh_duty <= 1, "mesh_duty",
+              "must be a share of the time, in (0, 1]")
         check(0 <= self.mesh_nice <= 19, "mesh_nice", "must be a nice value from 0 to 19")
         check(self.start_queue_bytes >= 0, "start_queue_bytes", "must be >= 0")
         check(bool(self.odom_frame.strip()) == bool(self.base_frame.strip()),

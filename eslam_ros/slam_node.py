@@ -541,7 +541,7 @@ class SlamNode(Node):
             lambda data: self.mesh_pub.publish(data), s.map_frame, lambda: self.get_clock().now().to_msg(),
             self.get_logger(), resolution=self._mesh_resolution() or self.config.mesh.resolution,
             block_size=s.mesh_block_size, period=s.mesh_period, budget_s=s.mesh_time_budget,
-            triangle_budget=s.mesh_triangle_budget, nice=s.mesh_nice)
+            triangle_budget=s.mesh_triangle_budget, nice=s.mesh_nice, duty=s.mesh_duty)
         # A new subscriber gets every block of the mesh (messages carry only changes): see mesh_publication.py.
         self.mesh_pub = self.create_publisher(MarkerArray, "~/mesh", latched_qos(), event_callbacks=(
             PublisherEventCallbacks(matched=self.mesh.subscriber_matched)))

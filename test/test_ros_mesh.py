@@ -131,6 +131,30 @@ def test_a_large_update_comes_in_several_messages_and_a_full_one_in_one(monkeypa
         publication.close()
 
 
+def test_the_mesh_process_rests_between_jobs_for_its_duty():
+    """At duty 0.25 a job of t seconds is followed by 3 t seconds without one (its work slows the tracker even at
+    SCHED_IDLE); the map is still meshed completely, one job after another."""
+    updates: list[tuple[float, float]] = []  # (time published, wall seconds of its job)
+    publication = MeshPublication(lambda data: updates.append((time.monotonic(), publication.figures.job_ms_last / 1e3)),
+                                  "map", lambda: 0.0, rclpy.logging.get_logger("mesh_test"), resolution=RES,
+                                  block_size=BLOCK, period=1e9, budget_s=0.02, triangle_budget=10**6, duty=0.25,
+                                  rest_s=1e9)
+    try:
+        publication.step(1, lambda have: snapshot_of([BALL, SMALL], have))
+        deadline = time.monotonic() + 120
+        while (publication.mesher.busy or publication.mesher.pending) and time.monotonic() < deadline:
+            publication.step(1, lambda have: None)
+            time.sleep(0.002)
+        assert not publication.mesher.pending and len(updates) >= 3, publication.status()
+        for (published, job_s), (next_published, _) in zip(updates, updates[1:]):
+            assert next_published - published >= 3 * job_s * 0.95
+    finally:
+        publication.close()
+    with pytest.raises(ValueError, match="duty"):
+        MeshPublication(lambda data: None, "map", lambda: 0.0, None, resolution=RES, block_size=BLOCK, period=1.0,
+                        budget_s=1.0, triangle_budget=1, duty=0.0)
+
+
 def test_only_changed_blocks_are_sent_and_a_late_subscriber_gets_them_all(ros):
     pub_node, sub_node = Node("mesh_test_publisher"), Node("mesh_test_viewer")
     executor = SingleThreadedExecutor()
