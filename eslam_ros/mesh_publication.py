@@ -28,8 +28,9 @@ Cost
     not full is cut into messages of at most MAX_MESSAGE_BYTES, with a short pause between them. Even at SCHED_IDLE
     the mesh process slows the tracker's slowest frames (caches and memory are shared), so it works at most `duty`
     of the time: after a job of t seconds the next starts t * (1 / duty - 1) seconds later. The process is started
-    at the first tick, so that its seconds of importing torch are over before the first frames. A new snapshot is taken every `mesh_period` seconds when the map changed; until then, jobs continue on
-    the last one while blocks are still dirty. The figures of the last job are in ~/status (`mesh_*`).
+    at the first tick, so that its seconds of importing torch are over before the first frames. A new snapshot is
+    taken every `mesh_period` seconds when the map changed; until then, jobs continue on the last one while blocks
+    are still dirty. The figures of the last job are in ~/status (`mesh_*`).
 """
 from __future__ import annotations
 
@@ -86,7 +87,7 @@ class MeshPublication:
         self.period, self.duty = period, duty
         self.full_every = full_every
         self.rest_s = max(2 * period, 2.0) if rest_s is None else rest_s
-        self._since_full = 0  # messages since the last full one
+        self._since_full = 0  # updates since the last full one
         self._last_sent = -float("inf")
         self.mesher = BackgroundMesher(resolution, block_size, budget_s, triangle_budget, nice)
         self.figures = MeshFigures()
@@ -122,7 +123,8 @@ class MeshPublication:
     def step(self, map_version: Any, take_snapshot: Callable[[set], MeshSnapshot | PackedSnapshot]) -> None:
         """Publish the mesh process's update if one is ready, every block if a subscriber is new, and start the
         next job when one is due: a new snapshot (`take_snapshot(ids of the keyframes whose depth the process
-        has)`) every `period` seconds if the map version changed, else a continuation while blocks are dirty."""
+        has)`) every `period` seconds if the map version changed, else a continuation while blocks are dirty; none
+        while the process rests (see "Cost")."""
         if not self.mesher.running:
             # Outside the lock (seconds: a new interpreter imports torch), so that reset() never waits for it.
             try:

@@ -135,8 +135,11 @@ def test_the_mesh_process_rests_between_jobs_for_its_duty():
     """At duty 0.25 a job of t seconds is followed by 3 t seconds without one (its work slows the tracker even at
     SCHED_IDLE); the map is still meshed completely, one job after another."""
     updates: list[tuple[float, float]] = []  # (time published, wall seconds of its job)
-    publication = MeshPublication(lambda data: updates.append((time.monotonic(), publication.figures.job_ms_last / 1e3)),
-                                  "map", lambda: 0.0, rclpy.logging.get_logger("mesh_test"), resolution=RES,
+
+    def publish(data: bytes) -> None:
+        updates.append((time.monotonic(), publication.figures.job_ms_last / 1e3))
+
+    publication = MeshPublication(publish, "map", lambda: 0.0, rclpy.logging.get_logger("mesh_test"), resolution=RES,
                                   block_size=BLOCK, period=1e9, budget_s=0.02, triangle_budget=10**6, duty=0.25,
                                   rest_s=1e9)
     try:
