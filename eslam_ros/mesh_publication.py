@@ -212,11 +212,11 @@ class MeshPublication:
         MAX_MESSAGE_BYTES, with a pause between them for the node's other threads (see "Cost")."""
         start = time.monotonic()
         parts = [blocks] if full else block_message_parts(blocks, MAX_MESSAGE_BYTES)
+        stamp = self._now()  # one update, one stamp
         for number, part in enumerate(parts):
             if number:
                 time.sleep(PART_PAUSE_S)
-            data = serialize_block_markers(part, [] if number else removed, self.frame_id, self._now(), NAMESPACE)
-            self._publish(data)
+            self._publish(serialize_block_markers(part, [] if number else removed, self.frame_id, stamp, NAMESPACE))
         f = self.figures
         f.publications += len(parts)
         f.full_publications += int(full)
