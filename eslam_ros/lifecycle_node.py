@@ -30,7 +30,7 @@ from rclpy.signals import SignalHandlerOptions
 from eslam_core.config import ConfigError
 from eslam_ros.node_params import NodeParameterError
 from eslam_ros.qos import use_shipped_fastdds_profile
-from eslam_ros.slam_node import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, SlamNode, _StopRequest
+from eslam_ros.slam_node import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, SlamNode, _StopRequest, spin_once
 
 
 class LifecycleSlamNode(SlamNode, LifecycleNode):
@@ -113,7 +113,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     status = EXIT_INTERRUPTED
     try:
         while rclpy.ok() and not stop.requested and not node.failed and node.lifecycle_state != "finalized":
-            executor.spin_once(timeout_sec=0.1)
+            spin_once(executor, 0.1)
         if node.lifecycle_state == "finalized":
             status = node.exit_status
         elif node.configured:

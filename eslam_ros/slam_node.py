@@ -47,6 +47,7 @@ from nav_msgs.msg import Odometry, Path as PathMsg
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -1206,6 +1207,17 @@ def node_executor() -> Any:
     return EventsExecutor()
 
 
+def spin_once(executor: Any, timeout_sec: float) -> None:
+    """One turn of `executor`, through rclpy's race with entities destroyed on another thread (rclpy issue 1142):
+    a lifecycle transition, run on an executor thread, removes the node's subscriptions while this thread builds
+    its wait set from them; rclpy then raises InvalidHandle from `spin_once`, and the next wait set no longer holds
+    them. Left uncaught, deactivating the node stopped its executor."""
+    try:
+        executor.spin_once(timeout_sec=timeout_sec)
+    except InvalidHandle:
+        pass
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     use_shipped_fastdds_profile()
     # rclpy's own handlers would shut the context down at once; ours let the node save its outputs first.
@@ -1224,7 +1236,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     status = EXIT_INTERRUPTED
     try:
         while rclpy.ok() and not stop.requested and not node.failed:
-            executor.spin_once(timeout_sec=0.1)
+            spin_once(executor, 0.1)
         node.get_logger().info("shutting down" + (": saving outputs" if node.settings.save_on_shutdown else ""))
         status = node.finish(save=node.settings.save_on_shutdown and not node.failed)
     except KeyboardInterrupt:

@@ -29,7 +29,7 @@ from eslam_core.evaluation.trajectory import read_tum
 from eslam_ros.bag import FORWARD_CAMERA, BagOdometry, write_bag
 from eslam_ros.conversions import camera_info_from_intrinsics, depth_to_image, msg_to_pose, rgb_to_image, \
     stamp_to_sec
-from eslam_ros.slam_node import SlamNode
+from eslam_ros.slam_node import SlamNode, spin_once
 from eslam_ros.tf_chain import pose_from_xyz_quaternion, transform_to_pose
 
 REPO = Path(__file__).resolve().parent.parent
@@ -68,7 +68,7 @@ class Spinner:
 
     def _spin(self) -> None:
         while not self._stop:
-            self.executor.spin_once(timeout_sec=0.05)
+            spin_once(self.executor, 0.05)
 
     def close(self) -> None:
         self._stop = True
