@@ -10,8 +10,9 @@ rectified images, e.g. image_rect topics).
 Poses: ESLAM poses are 4x4 camera-to-world matrices with the camera in the OpenCV *optical* frame (x right, y down,
 z forward). That is REP 103's `<camera>_optical_frame`, the frame_id that drivers put on image headers. So a pose
 converted here and published in the map frame is the pose of the image's frame_id in the map frame; no axis swap
-is needed as long as the image frame_id is an optical frame. (ESLAM's world frame is the first camera pose, so
-the map frame has optical axes too, y pointing down, unless the caller seeds the first pose otherwise.)
+is needed as long as the image frame_id is an optical frame. (ESLAM's world frame is the first camera pose squared
+with the scene, so the map frame has near-optical axes too, y pointing down, unless the caller seeds the first pose
+otherwise.)
 
 Input messages are read by attribute only, so both rclpy messages and rosbags' deserialised dataclasses work.
 Output messages are rclpy message objects.

@@ -34,6 +34,7 @@ from eslam_core.config import Config
 from eslam_core.frames import PreparedFrame, rgb_uint8
 from eslam_core.geometry import orthonormalize
 from eslam_core.mapping.keyframes import Keyframe
+from eslam_core.mapping.map_frame import squared_first_pose
 from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.representation.field import SceneField
 from eslam_core.tracking.odometry import FrameOdometry
@@ -139,8 +140,14 @@ class TrackingFrontEnd:
                     self.places.set_pose(int(number), pose)
 
     def first_pose(self, pf: PreparedFrame, trajectory: TrackedTrajectory) -> np.ndarray:
-        """The first frame fixes the map frame: its ground-truth pose when known (outputs share its frame)."""
-        pose0 = pf.gt_pose if pf.gt_pose is not None else np.eye(4)
+        """The first frame fixes the map frame: its ground-truth pose when known (outputs share its frame), else the
+        first camera's squared with the scene's surfaces (`scene.align_axes`, unless a bound in that frame is set)."""
+        if pf.gt_pose is not None:
+            pose0 = pf.gt_pose
+        elif self.cfg.scene.align_axes and self.cfg.scene.bound is None:
+            pose0 = squared_first_pose(pf.depth.cpu().numpy(), self.intr)
+        else:
+            pose0 = np.eye(4)
         self._note_odometry(pf, pose0)
         self.good = [len(trajectory)]
         if self.odometry is not None:
