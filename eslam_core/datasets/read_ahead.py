@@ -43,8 +43,6 @@ class ReadAhead:
         return len(self.dataset)
 
     def __getitem__(self, i: int) -> Frame:
-        if self._thread.ident is None and not self._closed:
-            self._thread.start()
         with self._cond:
             frame = self._ready.pop(i, None)
             self._taken = max(self._taken, i + 1)
@@ -52,6 +50,10 @@ class ReadAhead:
             for stale in [k for k in self._ready if k < self._taken]:
                 del self._ready[stale]
             self._cond.notify()
+        # Started once the first frame is claimed: started before, it could read that frame itself first (CI, a
+        # loaded machine), a race the caller's own read of the first frame does not have.
+        if self._thread.ident is None and not self._closed:
+            self._thread.start()
         if frame is None:
             return self.dataset[i]
         self.read_ahead += 1
