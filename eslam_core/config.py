@@ -66,7 +66,7 @@ class SceneConfig:
     max_extent: float = 60.0  # metres per axis a growing map may reach (stops runaway growth from stray depth)
     # Without a ground-truth first pose and without `bound`: the map frame is the first camera's turned so that the
     # scene's walls and floor are parallel to the feature planes (mapping/map_frame.py; ICL office 0.23 cm squared
-    # against 1.3-2.0 cm turned 30 degrees). False: the first camera's frame as it is.
+    # against 1.1-1.2 cm turned 30 degrees). False: the first camera's frame as it is.
     align_axes: bool = True
 
     def validate(self, check) -> None:

@@ -4,10 +4,10 @@ ESLAM's feature planes are axis-aligned (xy, xz, yz). A wall parallel to one of 
 a constant along the third axis; the same wall at 30 degrees cuts across every plane's cells, and the planes must
 learn it as a staircase. Data sets hide this: their world frames are squared with the room (ICL-NUIM, Replica,
 ScanNet) and runs start at the ground-truth pose. A camera on a robot starts at whatever angle it is held, and its
-first frame is the map frame. Measured (`eslam run --workers 2 --no-mesh --config live`, session 23): ICL office,
-300 frames, whose first camera is squared with the room: 0.23 cm; the same frames with the map frame turned 30
-degrees about two random axes: 1.27 and 1.96 cm. 7-Scenes RedKitchen, 400 frames, from the first camera's frame:
-3.35 / 3.42 cm; turned as below: 2.70 / 2.77 cm.
+first frame is the map frame. Measured (`python bench/map_frame.py`, `live`, two processes, session 23): ICL office
+frames 1-299, whose first camera is squared with the room: 0.23 cm; the same frames with the first frame turned 30
+degrees about two random axes: 1.06 and 1.17 cm. 7-Scenes RedKitchen, 400 frames: from the first camera's frame
+3.38 cm, squared as below 2.68 cm, from the data set's reference pose 2.82 cm.
 
 The turn is the smallest rotation of the first camera's frame that makes the scene's two most common orthogonal
 surface directions (a Manhattan frame: floor and a wall, or two walls) coordinate axes. Surface directions are the
