@@ -174,11 +174,16 @@ class TrackingConfig:
     # The starting pose from frame-to-frame RGB-D odometry (odometry.py) on images about this many pixels wide,
     # where it succeeds, instead of the constant-velocity prediction; 0 = constant velocity only (the paper).
     odometry_width: int = 0
+    # Its Gauss-Newton iterations per pyramid level, the finest level first (OpenCV's default: 7, 7, 7, 10).
+    odometry_iterations: list[int] = field(default_factory=lambda: [7, 7, 7, 10])
 
     def validate(self, check) -> None:
         check(self.method in ("render", "sdf"), "tracking.method", "must be 'render' or 'sdf'")
         check(self.odometry_width == 0 or self.odometry_width >= 64, "tracking.odometry_width",
               "must be 0 (off) or at least 64 pixels (the odometry's image pyramid needs 4 levels)")
+        check(len(self.odometry_iterations) == 4 and all(isinstance(n, int) and not isinstance(n, bool) and n >= 1
+                                                         for n in self.odometry_iterations),
+              "tracking.odometry_iterations", "must be 4 positive integers (iterations per level, finest first)")
         check(self.mode in ("track", "external"), "tracking.mode",
               "must be 'track' or 'external' (poses from external odometry, mapping only)")
         check(self.huber > 0, "tracking.huber", "must be positive (metres)")

@@ -14,7 +14,8 @@ import eslam_core
 from eslam_core.device import cuda_missing_reason, resolve_device
 from eslam_core.native import kernel_status
 
-KERNELS = {"plane_lookup": "feature-plane lookup", "denormals": "denormal flush in the OpenMP pool"}
+KERNELS = {"plane_lookup": "feature-plane lookup", "denormals": "denormal flush in the OpenMP pool",
+           "photometric": "the SDF tracker's photometric residuals"}
 ROS_WHEELS = ("ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "rclpy", "rosbags")  # setup.py's ros extra and bags
 
 

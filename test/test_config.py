@@ -63,6 +63,8 @@ def test_odometry_width_too_small_for_its_pyramid(tmp_path):
     with pytest.raises(ConfigError, match=r"tracking\.odometry_width.*0 \(off\) or at least 64"):
         load_config(write(tmp_path, "tracking: {odometry_width: 32}\n"))
     assert load_config("live").tracking.odometry_width == 160 and load_config("icl").tracking.odometry_width == 0
+    with pytest.raises(ConfigError, match=r"tracking\.odometry_iterations.*4 positive integers"):
+        load_config(write(tmp_path, "tracking: {odometry_iterations: [4, 7, 7]}\n"))
 
 
 def test_fine_plane_coarser_than_coarse(tmp_path):

@@ -86,6 +86,34 @@ def test_points_the_keyframe_did_not_see_are_not_valid(reference):
     assert not photometric_residuals(behind, reference_grey(x), reference, 0, INTR, 0.06)[2].any()
 
 
+@pytest.mark.parametrize("level", [0, 1, 2])
+def test_c_kernel_matches_the_torch_reference(reference, level, monkeypatch):
+    from eslam_core.native import load_kernel
+    from eslam_core.tracking import photometric
+
+    if load_kernel("photometric") is None:
+        pytest.skip("no C compiler: the torch implementation is the only one")
+    g = torch.Generator().manual_seed(level)
+    turn = torch.tensor([[0.995, -0.0998, 0.0], [0.0998, 0.995, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    ref = Reference(0, reference.levels, reference.depth.clone(), torch.eye(4, dtype=torch.float64))
+    ref.pose[:3, :3], ref.pose[:3, 3] = turn, torch.tensor([0.05, -0.02, 0.01], dtype=torch.float64)
+    ref.depth[:40] = 1.0  # occluded in part
+    # Points inside, near the border of and outside the view, some behind the camera.
+    p = wall_points(600, seed=3)
+    p[:, :2] *= 1.3
+    p[:20, 2] = -0.5
+    x = p @ turn.T + ref.pose[:3, 3]
+    grey = torch.rand(len(x), generator=g, dtype=torch.float64)
+    native = photometric_residuals(x, grey, ref, level, INTR, occlusion=0.06)
+    monkeypatch.setattr(photometric, "load_kernel", lambda name: None)
+    torch_ref = photometric_residuals(x, grey, ref, level, INTR, occlusion=0.06)
+    assert 0.3 < native[2].float().mean() < 0.9  # a mix of valid and invalid points
+    assert torch.equal(native[2], torch_ref[2])
+    # The torch version samples in float32.
+    torch.testing.assert_close(native[0], torch_ref[0], rtol=0, atol=1e-5)
+    torch.testing.assert_close(native[1], torch_ref[1], rtol=1e-4, atol=1e-3)
+
+
 def test_pyramid_halves_each_level_and_keeps_the_mean():
     rgb = torch.rand(120, 160, 3)
     levels = grey_pyramid(rgb, 3)

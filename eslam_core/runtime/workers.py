@@ -286,7 +286,8 @@ def become_worker(name: str, setup: WorkerSetup) -> None:
     torch.set_num_threads(setup.threads)
     cv2.setNumThreads(setup.threads)  # OpenCV's pool (odometry, ORB) would otherwise take the other worker's core
     torch.manual_seed(setup.cfg.run.seed)
-    load_kernel("plane_lookup")  # build / load the C kernel now rather than inside the first frame's timing
+    for kernel in ("plane_lookup", "photometric"):  # built / loaded now rather than inside the first frame's timing
+        load_kernel(kernel)
 
 
 def run_worker(name: str, body, setup: WorkerSetup, errors) -> None:

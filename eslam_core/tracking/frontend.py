@@ -85,7 +85,8 @@ class TrackingFrontEnd:
         self.fallback_pose = np.eye(4)
         self.odometry = None  # frame-to-frame odometry, its reference the last well-tracked frame
         if cfg.tracking.odometry_width > 0 and self.tracker is not None:
-            self.odometry = FrameOdometry(intr, cfg.tracking.odometry_width, cfg.camera.max_depth)
+            self.odometry = FrameOdometry(intr, cfg.tracking.odometry_width, cfg.camera.max_depth,
+                                          cfg.tracking.odometry_iterations)
         self.places = None  # the keyframes for relocalization (a KeyframeDatabase), when enabled
         if cfg.relocalization.enabled and self.tracker is not None:
             from eslam_core.tracking.relocalization import KeyframeDatabase  # (OpenCV: loaded only when used)

@@ -15,7 +15,7 @@ reference poses at 160 x 120 pixels, in about 5 ms per frame on one core. OpenCV
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Sequence
 
 import cv2
 import numpy as np
@@ -39,7 +39,8 @@ def small_images(rgb: torch.Tensor, depth: torch.Tensor, factor: int) -> tuple[n
 class FrameOdometry:
     """The motion of the camera between the last frame it was given as a reference and a new one."""
 
-    def __init__(self, intr: Intrinsics, width: int, max_depth: float = 0.0):
+    def __init__(self, intr: Intrinsics, width: int, max_depth: float = 0.0,
+                 iterations: Sequence[int] = (7, 7, 7, 10)):
         if not hasattr(cv2, "Odometry"):
             raise RuntimeError(f"tracking.odometry_width needs OpenCV >= 5.1 (cv2.Odometry), this is OpenCV "
                                f"{cv2.__version__}: pip install 'opencv-python-headless>=5.1', or set "
@@ -51,6 +52,10 @@ class FrameOdometry:
         settings.setCameraMatrix(K)
         if max_depth > 0:
             settings.setMaxDepth(float(max_depth))
+        # OpenCV 5.1's binding reads the count of level i from row i, column 0 of a matrix with one column per
+        # level (a vector of ints does not pass through the Python binding).
+        counts = np.asarray(iterations, np.int32)
+        settings.setIterCounts(np.repeat(counts[:, None], len(counts), axis=1))
         self.odometry = cv2.Odometry(cv2.OdometryType_RGB_DEPTH, settings, cv2.OdometryAlgoType_COMMON)
         self.reference: Optional[cv2.OdometryFrame] = None
         self.reference_key: object = None

@@ -10,6 +10,7 @@ central differences, given in full-resolution pixel units at every level so that
 """
 from __future__ import annotations
 
+import ctypes
 from dataclasses import dataclass
 
 import cv2
@@ -18,6 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from eslam_core.camera import Intrinsics
+from eslam_core.native import load_kernel, pointer
 
 GREY = torch.tensor([0.299, 0.587, 0.114])
 _GREY_ON: dict = {}  # device -> GREY there (copied once: a copy per call would make the host wait for a GPU)
@@ -100,8 +102,12 @@ def photometric_residuals(x: torch.Tensor, grey_current: torch.Tensor, ref: Refe
     """Residuals I_r(pi(x)) - I_c (N,), their gradients in the world point x (N, 3) and which are valid (N,).
 
     A point is valid when it lands inside the reference image in front of the camera and the reference saw the
-    same surface there: its depth agrees with the reference depth to within `occlusion` metres.
+    same surface there: its depth agrees with the reference depth to within `occlusion` metres. On CPU tensors
+    (double points) one pass of the C kernel (kernels/photometric.c) computes the same.
     """
+    native = _native_residuals(x, grey_current, ref, level, intr, occlusion)
+    if native is not None:
+        return native
     pose = ref.pose.to(x.dtype)
     p = (x - pose[:3, 3]) @ pose[:3, :3]  # R^T (x - t) for row vectors: the point in the reference camera
     u, v = intr.project(p)
@@ -119,3 +125,27 @@ def photometric_residuals(x: torch.Tensor, grey_current: torch.Tensor, ref: Refe
     grad_cam = torch.stack([iu * intr.fx / zc, iv * intr.fy / zc,
                             -(iu * intr.fx * p[:, 0] + iv * intr.fy * p[:, 1]) / zc**2], -1)
     return residual, grad_cam @ pose[:3, :3].T, valid
+
+
+def _native_residuals(x: torch.Tensor, grey_current: torch.Tensor, ref: Reference, level: int, intr: Intrinsics,
+                      occlusion: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    image, depth = ref.levels[level], ref.depth
+    if not (x.device.type == depth.device.type == image.device.type == "cpu" and x.dtype == grey_current.dtype
+            == torch.float64 and image.dtype == depth.dtype == torch.float32
+            and tuple(depth.shape) == (intr.height, intr.width)):
+        return None
+    lib = load_kernel("photometric")
+    if lib is None:
+        return None
+    x, grey_current = x.contiguous(), grey_current.contiguous()
+    image, depth, pose = image.contiguous(), depth.contiguous(), ref.pose.double().contiguous()
+    n, (h, w) = len(x), image.shape[-2:]
+    residual, grad = torch.empty(n, dtype=torch.float64), torch.empty(n, 3, dtype=torch.float64)
+    valid = torch.empty(n, dtype=torch.bool)
+    c_double, c_int64 = ctypes.c_double, ctypes.c_int64
+    lib.photometric_residuals(
+        pointer(x), c_int64(n), pointer(pose), c_double(intr.fx), c_double(intr.fy), c_double(intr.cx),
+        c_double(intr.cy), c_int64(intr.width), c_int64(intr.height), pointer(depth), pointer(image), c_int64(h),
+        c_int64(w), c_double(2.0**level), pointer(grey_current), c_double(occlusion), pointer(residual),
+        pointer(grad), pointer(valid))
+    return residual, grad, valid

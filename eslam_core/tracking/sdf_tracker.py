@@ -183,23 +183,21 @@ class SDFTracker:
                 best_Rt = R, t
             if last or band.sum() < 30:
                 break
-            xs, rs, gs, ws = [x[band]], [r_geo[band]], [sdf_grad[band].double() / tc.huber], \
-                [huber_weights(r_geo[band])]
+            # Points outside a term's mask take part with weight 0 (cheaper than gathering the others).
+            xs, rs, gs, ws = [x], [r_geo], [sdf_grad.double() / tc.huber], [huber_weights(r_geo) * band]
             if lam > 0:
-                rc = r_col[band]
-                xs.append(x[band])
-                rs.append(rc)
-                gs.append(grey_grad[band].double() / tc.color_huber)
-                ws.append(lam * huber_weights(rc))
+                xs.append(x)
+                rs.append(r_col)
+                gs.append(grey_grad.double() / tc.color_huber)
+                ws.append(lam * huber_weights(r_col) * band)
             if ref is not None and photo_used.any():
                 if level > 0:
                     r_ph, g_ph, ok = photometric_residuals(x, grey_current[level], ref, level, self.intr, T)
                     r_ph = r_ph / tc.photometric_huber
-                keep = ok & photo_used
-                xs.append(x[keep])
-                rs.append(r_ph[keep])
-                gs.append(g_ph[keep] / tc.photometric_huber)
-                ws.append(tc.photometric_weight * huber_weights(r_ph[keep]))
+                xs.append(x)
+                rs.append(r_ph)
+                gs.append(g_ph / tc.photometric_huber)
+                ws.append(tc.photometric_weight * huber_weights(r_ph) * (ok & photo_used))
             delta = gauss_newton_step(torch.cat(xs), torch.cat(rs), torch.cat(gs), torch.cat(ws), damping=1e-4)
             if not torch.isfinite(delta).all():
                 break
