@@ -15,7 +15,8 @@ from eslam_core.device import cuda_missing_reason, resolve_device
 from eslam_core.native import kernel_status
 
 KERNELS = {"plane_lookup": "feature-plane lookup", "denormals": "denormal flush in the OpenMP pool",
-           "photometric": "the SDF tracker's photometric residuals"}
+           "photometric": "the SDF tracker's photometric residuals",
+           "gauss_newton": "the SDF tracker's normal equations"}
 ROS_WHEELS = ("ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "rclpy", "rosbags")  # setup.py's ros extra and bags
 
 

@@ -334,10 +334,12 @@ def test_node_keeps_publishing_poses_from_a_30_hz_stream_while_its_mesh_is_built
     busy = [t for t, values in status if start <= t <= end and values.get("mesh_busy") == "True"]
     final = status[-1][1]
     log = log_path.read_text()[-3000:]
-    # A mesh was being built for most of the stream (status every 0.1 s), and it was published once the CPU was
-    # free again ...
-    assert len(busy) >= 0.5 * (end - start) / 0.1 and int(final["meshes_published"]) >= 1, (len(busy), final, log)
-    # ... while poses kept coming, never a second without one (a mesh job lasts seconds: a node that waited for it
-    # would stall that long).
+    # A mesh was being built for at least 0.8 s of the stream (status every 0.1 s; how long depends on the CPU the
+    # tracker leaves it), and it was published once the CPU was free again ...
+    assert len(busy) >= 8 and int(final["meshes_published"]) >= 1, (len(busy), final, log)
+    # ... while poses kept coming, at a quarter of the camera's rate or more while the mesh was built, never a second
+    # without one (a mesh job lasts seconds: a node that waited for it would stall that long).
+    during = [t for t in streamed if busy[0] <= t <= busy[-1]]
+    assert len(during) >= 0.25 * 30 * (busy[-1] - busy[0]), (len(during), busy[-1] - busy[0], log)
     gaps = np.diff([start] + streamed + [end])
     assert len(streamed) >= 10 and gaps.max() < 1.0, (len(streamed), gaps.max(), log)

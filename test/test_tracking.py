@@ -138,6 +138,34 @@ def test_sdf_tracker_at_the_presets_settings_converges_from_5_cm_and_5_degrees(f
     assert rotation_angle_deg(est[:3, :3].T @ gt[:3, :3]) < 0.5
 
 
+def test_gauss_newton_step_solves_a_linear_problem_and_the_kernel_matches_torch(monkeypatch):
+    """Residuals r_i = g_i . (x_i + w x x_i + v) - c_i of points on planes are linear in the motion (v, w): one
+    step recovers it exactly; rows of weight 0 take no part; the C kernel's normal equations equal torch's."""
+    from eslam_core.native import load_kernel
+    from eslam_core.tracking import sdf_tracker
+    from eslam_core.tracking.sdf_tracker import gauss_newton_step, normal_equations
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(500, 3, generator=g, dtype=torch.float64)
+    normals = torch.nn.functional.normalize(torch.randn(500, 3, generator=g, dtype=torch.float64), dim=1)
+    v, w = torch.tensor([0.01, -0.02, 0.005], dtype=torch.float64), torch.tensor([0.003, 0.01, -0.004],
+                                                                                 dtype=torch.float64)
+    moved = x + torch.cross(w.expand_as(x), x, dim=-1) + v
+    r = -(normals * (moved - x)).sum(1)  # the residual at the current pose that the motion cancels
+    weights = torch.rand(500, generator=g, dtype=torch.float64)
+    weights[:100] = 0.0
+    r[:100] = 1e3  # outliers that must not count
+    H, b = normal_equations(x, r, normals, weights)
+    delta = gauss_newton_step(H, b, damping=0.0)
+    torch.testing.assert_close(delta, torch.cat([v, w]), rtol=0, atol=1e-9)
+    if load_kernel("gauss_newton") is None:
+        pytest.skip("no C compiler: the torch implementation is the only one")
+    monkeypatch.setattr(sdf_tracker, "load_kernel", lambda name: None)
+    H_torch, b_torch = normal_equations(x, r, normals, weights)
+    torch.testing.assert_close(H, H_torch, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(b, b_torch, rtol=1e-12, atol=1e-12)
+
+
 def test_draw_in_extent_keeps_only_points_inside_and_estimates_their_share():
     candidates = torch.arange(0, 2000, 2)  # even pixels; pixel p's point lies at x = p / 1000 m
     torch.manual_seed(0)

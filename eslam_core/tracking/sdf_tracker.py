@@ -26,6 +26,8 @@ tests read a few numbers back per iteration (six iterations per frame), the pose
 """
 from __future__ import annotations
 
+import ctypes
+
 import numpy as np
 import torch
 
@@ -37,6 +39,7 @@ from eslam_core.frames import PreparedFrame, border_mask
 from eslam_core.geometry import depth_points_world, so3_exp
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSurfaces
+from eslam_core.native import load_kernel, pointer
 from eslam_core.tracking.photometric import Reference, grey_pyramid, photometric_residuals, sample, to_grey
 from eslam_core.tracking.render_tracker import TrackingResult, draw_in_extent
 
@@ -72,14 +75,25 @@ def field_residuals(field: FrozenField, x: torch.Tensor, truncation: float, with
     return sdf * truncation, sdf_grad * truncation, grey.detach(), grey_grad
 
 
-def gauss_newton_step(x: torch.Tensor, r: torch.Tensor, grad: torch.Tensor, w: torch.Tensor,
-                      damping: float) -> torch.Tensor:
-    """(v, w) minimising sum w_i (r_i + J_i [v; w])^2 + damping |.|^2, J_i = [grad_i, x_i x grad_i]."""
-    x, grad = x.double(), grad.double()
+def normal_equations(x: torch.Tensor, r: torch.Tensor, grad: torch.Tensor, w: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """H = sum w_i J_i^T J_i and b = sum w_i J_i^T r_i (double), J_i = [grad_i, x_i x grad_i]: one residual
+    term's share of a Gauss-Newton step. On CPU tensors one pass of the C kernel (kernels/gauss_newton.c)."""
+    x, r, grad, w = x.double(), r.double(), grad.double(), w.double()
+    lib = load_kernel("gauss_newton") if x.device.type == "cpu" else None
+    if lib is not None:
+        x, r, grad, w = x.contiguous(), r.contiguous(), grad.contiguous(), w.contiguous()
+        H, b = torch.empty(6, 6, dtype=torch.float64), torch.empty(6, dtype=torch.float64)
+        lib.normal_equations(pointer(x), pointer(r), pointer(grad), pointer(w), ctypes.c_int64(len(x)), pointer(H),
+                             pointer(b))
+        return H, b
     J = torch.cat([grad, torch.cross(x, grad, dim=-1)], dim=-1)
-    Jw = J * w.double()[:, None]
-    H = Jw.T @ J
-    b = Jw.T @ r.double()
+    Jw = J * w[:, None]
+    return Jw.T @ J, Jw.T @ r
+
+
+def gauss_newton_step(H: torch.Tensor, b: torch.Tensor, damping: float) -> torch.Tensor:
+    """(v, w) minimising sum w_i (r_i + J_i [v; w])^2 + damping |.|^2 given its normal equations H, b."""
     H = H + damping * torch.diag(torch.diagonal(H).clamp_min(1e-9))
     return -torch.linalg.solve(H, b)
 
@@ -184,21 +198,18 @@ class SDFTracker:
             if last or band.sum() < 30:
                 break
             # Points outside a term's mask take part with weight 0 (cheaper than gathering the others).
-            xs, rs, gs, ws = [x], [r_geo], [sdf_grad.double() / tc.huber], [huber_weights(r_geo) * band]
+            H, b = normal_equations(x, r_geo, sdf_grad / tc.huber, huber_weights(r_geo) * band)
             if lam > 0:
-                xs.append(x)
-                rs.append(r_col)
-                gs.append(grey_grad.double() / tc.color_huber)
-                ws.append(lam * huber_weights(r_col) * band)
+                Hc, bc = normal_equations(x, r_col, grey_grad / tc.color_huber, lam * huber_weights(r_col) * band)
+                H, b = H + Hc, b + bc
             if ref is not None and photo_used.any():
                 if level > 0:
                     r_ph, g_ph, ok = photometric_residuals(x, grey_current[level], ref, level, self.intr, T)
                     r_ph = r_ph / tc.photometric_huber
-                xs.append(x)
-                rs.append(r_ph)
-                gs.append(g_ph / tc.photometric_huber)
-                ws.append(tc.photometric_weight * huber_weights(r_ph) * (ok & photo_used))
-            delta = gauss_newton_step(torch.cat(xs), torch.cat(rs), torch.cat(gs), torch.cat(ws), damping=1e-4)
+                Hp, bp = normal_equations(x, r_ph, g_ph / tc.photometric_huber,
+                                          tc.photometric_weight * huber_weights(r_ph) * (ok & photo_used))
+                H, b = H + Hp, b + bp
+            delta = gauss_newton_step(H, b, damping=1e-4)
             if not torch.isfinite(delta).all():
                 break
             dR = so3_exp(delta[3:])
