@@ -45,7 +45,8 @@ void photometric_residuals(const double *x, int64_t N, const double *pose, doubl
         double s[3];
         bilinear3(level, h, w, (u + 0.5) * inv_scale - 0.5, (v + 0.5) * inv_scale - 0.5, s);
         residual[i] = s[0] - grey[i];
-        const double gc[3] = {s[1] * fx * inv_z, s[2] * fy * inv_z, -(s[1] * fx * p[0] + s[2] * fy * p[1]) * inv_z * inv_z};
+        const double gc[3] = {s[1] * fx * inv_z, s[2] * fy * inv_z,
+                              -(s[1] * fx * p[0] + s[2] * fy * p[1]) * inv_z * inv_z};
         for (int j = 0; j < 3; ++j) grad[3 * i + j] = R[3 * j] * gc[0] + R[3 * j + 1] * gc[1] + R[3 * j + 2] * gc[2];
         valid[i] = (uint8_t)ok;
     }

@@ -286,7 +286,7 @@ def become_worker(name: str, setup: WorkerSetup) -> None:
     torch.set_num_threads(setup.threads)
     cv2.setNumThreads(setup.threads)  # OpenCV's pool (odometry, ORB) would otherwise take the other worker's core
     torch.manual_seed(setup.cfg.run.seed)
-    for kernel in ("plane_lookup", "photometric", "gauss_newton"):  # built / loaded now rather than inside the first frame's timing
+    for kernel in ("plane_lookup", "photometric", "gauss_newton"):  # now, not inside the first frame's timing
         load_kernel(kernel)
 
 

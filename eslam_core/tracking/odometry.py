@@ -40,7 +40,7 @@ class FrameOdometry:
     """The motion of the camera between the last frame it was given as a reference and a new one."""
 
     def __init__(self, intr: Intrinsics, width: int, max_depth: float = 0.0,
-                 iterations: Sequence[int] = (7, 7, 7, 10)):
+                 iterations: Optional[Sequence[int]] = None):
         if not hasattr(cv2, "Odometry"):
             raise RuntimeError(f"tracking.odometry_width needs OpenCV >= 5.1 (cv2.Odometry), this is OpenCV "
                                f"{cv2.__version__}: pip install 'opencv-python-headless>=5.1', or set "
@@ -52,10 +52,11 @@ class FrameOdometry:
         settings.setCameraMatrix(K)
         if max_depth > 0:
             settings.setMaxDepth(float(max_depth))
-        # OpenCV 5.1's binding reads the count of level i from row i, column 0 of a matrix with one column per
-        # level (a vector of ints does not pass through the Python binding).
-        counts = np.asarray(iterations, np.int32)
-        settings.setIterCounts(np.repeat(counts[:, None], len(counts), axis=1))
+        if iterations is not None:  # per pyramid level, finest first (None: OpenCV's own)
+            # OpenCV 5.1's binding reads the count of level i from row i, column 0 of a matrix with one column per
+            # level (a vector of ints does not pass through the Python binding).
+            counts = np.asarray(iterations, np.int32)
+            settings.setIterCounts(np.repeat(counts[:, None], len(counts), axis=1))
         self.odometry = cv2.Odometry(cv2.OdometryType_RGB_DEPTH, settings, cv2.OdometryAlgoType_COMMON)
         self.reference: Optional[cv2.OdometryFrame] = None
         self.reference_key: object = None

@@ -87,9 +87,11 @@ def normal_equations(x: torch.Tensor, r: torch.Tensor, grad: torch.Tensor, w: to
         lib.normal_equations(pointer(x), pointer(r), pointer(grad), pointer(w), ctypes.c_int64(len(x)), pointer(H),
                              pointer(b))
         return H, b
-    J = torch.cat([grad, torch.cross(x, grad, dim=-1)], dim=-1)
+    # As in the kernel, rows of weight 0 take no part even where their residual or gradient is not finite.
+    used = w > 0
+    J = torch.where(used[:, None], torch.cat([grad, torch.cross(x, grad, dim=-1)], dim=-1), 0.0)
     Jw = J * w[:, None]
-    return Jw.T @ J, Jw.T @ r
+    return Jw.T @ J, Jw.T @ torch.where(used, r, 0.0)
 
 
 def gauss_newton_step(H: torch.Tensor, b: torch.Tensor, damping: float) -> torch.Tensor:
