@@ -383,6 +383,10 @@ class RuntimeConfig:
     # A tracker faster than the mapper otherwise runs ahead without limit: on 300 ICL frames the map it tracked
     # against lagged 34 keyframes behind, and on a long run the mapper's queue of keyframes grows with time.
     max_keyframe_lag: Optional[int] = 4
+    # Pipelined, live policy: a mapping step goes on up to this many iterations while no newer keyframe waits: the
+    # mapper's idle time between keyframes (a keyframe that arrives ends it once it has had mapping.iterations).
+    # None = mapping.iterations. Offline the tracker waits for the mapper, which has no idle time.
+    idle_iterations: Optional[int] = None
     # Pipelined: the tracker gets the first map after this many of the warm-up's iterations (null = after all of
     # them) and tracks while the warm-up goes on, instead of waiting with its core lent to the warm-up (two threads
     # on the warm-up's small tensors are only ~1.2x one). The first frames are then tracked against a map of the
@@ -402,6 +406,8 @@ class RuntimeConfig:
               "must be >= 0, or null for no limit")
         check(self.catch_up_iterations is None or self.catch_up_iterations >= 1, "runtime.catch_up_iterations",
               "must be >= 1, or null for never")
+        check(self.idle_iterations is None or self.idle_iterations >= 1, "runtime.idle_iterations",
+              "must be >= 1, or null for mapping.iterations")
         check(self.max_keyframe_lag is None or self.max_keyframe_lag >= 0, "runtime.max_keyframe_lag",
               "must be >= 0, or null for no limit")
         check(self.first_map_after is None or self.first_map_after >= 1, "runtime.first_map_after",

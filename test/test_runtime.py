@@ -28,7 +28,7 @@ from eslam_core.outputs.export import load_checkpoint, map_mesh
 from eslam_core.outputs.mesh_worker import PackedSnapshot
 from eslam_core.representation.field import SceneField
 from eslam_core.frames import pixel_directions_table, prepare_frame
-from eslam_core.mapping.scene_map import initial_extent
+from eslam_core.mapping.scene_map import SceneMap, initial_extent
 from eslam_core.slam import new_keyframe
 from eslam_core.trajectory import FrameRecord, TrackedTrajectory
 from eslam_core.runtime import RuntimeCrashed, RuntimeSetupError, make_runtime
@@ -629,6 +629,35 @@ def test_mapper_catches_up_only_when_a_newer_keyframe_waits(monkeypatch):
     assert not mapper._behind(1) and mapper._behind(2)
     mapper.pending.extend([object(), object()])  # four waiting (one still queued): one iteration is its share
     assert mapper._behind(1)
+
+
+@pytest.mark.parametrize("policy", ["live", "offline"])
+def test_live_mapper_maps_on_while_no_keyframe_waits(monkeypatch, policy):
+    """runtime.idle_iterations: live, a step goes on past mapping.iterations into the mapper's idle time, and ends
+    there once a newer keyframe waits; offline (the tracker waits for the mapper) steps keep mapping.iterations."""
+    monkeypatch.setattr(workers, "register_optimizer_step_post_hook", lambda hook: None)
+    ch = workers.Channels(None, queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), HealthBoard(),
+                          Control(), None)
+    cfg = load_config("demo", {"mapping": {"iterations": 5}, "runtime": {"idle_iterations": 12}})
+    setup = workers.WorkerSetup(cfg, Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0), policy, 1, os.getpid(), logging.INFO)
+    mapper = workers.MapperWorker(setup, ch)
+    assert mapper._step_iterations() == (12 if policy == "live" else None)
+    assert not mapper._stop_early(5) and not mapper._stop_early(11)  # nothing newer: the idle time is used
+    ch.board.add(Counter.KEYFRAMES)  # the tracker queued one
+    assert not mapper._stop_early(4) and mapper._stop_early(5)
+
+
+def test_a_mapping_step_runs_the_iterations_it_is_given(room_sequence):
+    cfg = fast_cfg(mapping={"first_iterations": 3, "iterations": 2})
+    intr = room_sequence.intrinsics
+    scene = SceneMap(cfg, intr, pixel_directions_table(intr))
+    first = prepare_frame(room_sequence[0], intr, cfg.camera)
+    scene.start(initial_extent(cfg, first, intr, first.gt_pose))
+    scene.add_keyframe(new_keyframe(first, torch.from_numpy(first.gt_pose).float(), 0))
+    scene.warm_up()
+    done = []
+    scene.map_newest(lambda it: done.append(it) or False, iterations=7)
+    assert done == list(range(1, 7))  # asked after every iteration but the last
 
 
 @pytest.mark.parametrize("lag", [None, 1])

@@ -69,13 +69,15 @@ class Mapper:
 
     @denormals_flushed()  # see cpu.py
     def map(self, field: SceneField, keyframes, window: list[int], first: bool = False,
-            optimise_poses: bool = False, stop_early: Optional[Callable[[int], bool]] = None) -> MappingResult:
+            optimise_poses: bool = False, stop_early: Optional[Callable[[int], bool]] = None,
+            iterations: Optional[int] = None) -> MappingResult:
         """`stop_early(iterations done)`, asked after every iteration, may end the step before its iteration count
-        (the pipelined mapper does when it falls behind the tracker)."""
+        (the pipelined mapper does when it falls behind the tracker). `iterations`: that count, if not the config's."""
         mc = self.cfg.mapping
         device = field.device
         self._on(device)
-        iterations = mc.first_iterations if first else mc.iterations
+        if iterations is None:
+            iterations = mc.first_iterations if first else mc.iterations
         lr_factor = mc.first_lr_factor if first else 1.0
         oldest = min(window, key=lambda i: keyframes[i].frame_index)
         free = [i for i in window if optimise_poses and i != oldest]

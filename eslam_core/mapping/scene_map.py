@@ -182,8 +182,10 @@ class SceneMap:
         self.observed.mapped(1)
         return MappingStep(res.loss, {})
 
-    def map_newest(self, stop_early: Optional[Callable[[int], bool]] = None) -> MappingStep:
-        """One mapping step for the newest keyframe over its window; refined poses are written back."""
+    def map_newest(self, stop_early: Optional[Callable[[int], bool]] = None,
+                   iterations: Optional[int] = None) -> MappingStep:
+        """One mapping step for the newest keyframe over its window (`iterations`: if not mapping.iterations);
+        refined poses are written back."""
         current = len(self.keyframes) - 1
         kf = self.keyframes[current]
         d = kf.depth_image().reshape(-1)
@@ -195,7 +197,7 @@ class SceneMap:
         mc = self.cfg.mapping
         optimise_poses = mc.joint_poses and self.keyframes.made > mc.joint_poses_after
         res = self.mapper.map(self.field, self.keyframes, window, first=False, optimise_poses=optimise_poses,
-                              stop_early=stop_early)
+                              stop_early=stop_early, iterations=iterations)
         self.version += 1
         refined = {}
         for i, pose in res.refined.items():

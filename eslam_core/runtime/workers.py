@@ -13,8 +13,10 @@ runs the warm-up, then one mapping step per keyframe (offline policy). When keyf
 `keyframe_backlog` (0 under the live policy; unlimited by default offline), the older waiting ones join the window
 of the newest as its "previous keyframes" instead of getting a step of their own, so the map keeps up with the camera.
 With `catch_up_iterations`, every keyframe keeps its step, but a step ends early once newer keyframes wait, the
-sooner the more of them (`_behind`): the mapper stays within about a keyframe of the tracker. After each step (and,
-with `publish_every`, every so many optimiser iterations during one) it publishes the parameters into the shared map.
+sooner the more of them (`_behind`): the mapper stays within about a keyframe of the tracker. Live, with
+`runtime.idle_iterations`, a step goes on past `mapping.iterations` into the mapper's idle time until a newer keyframe
+waits (`_stop_early`). After each step (and, with `publish_every`, every so many optimiser iterations during one)
+it publishes the parameters into the shared map.
 The publishing and the checks for stop / reset / snapshot requests happen in an optimiser post-step hook, so that
 `Mapper.map` knows nothing of them and a long step (the warm-up) still reacts within one iteration.
 
@@ -731,8 +733,7 @@ class MapperWorker:
             if attach:
                 self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
             with self.ch.board.timed(Counter.MAP_STEP_S):
-                step = self._step(lambda: self.scene.map_newest(
-                    self._behind if self.setup.catch_up_iterations else None))
+                step = self._step(lambda: self.scene.map_newest(self._stop_early, self._step_iterations()))
             loss, refined = (step.loss, {i: p.numpy().copy() for i, p in step.refined.items()}) if step else \
                 (float("nan"), {})
         version = self._publish()
@@ -794,12 +795,28 @@ class MapperWorker:
         finally:
             self.publishing_mid_step = False
 
+    def _step_iterations(self) -> Optional[int]:
+        """Live, a step may take the mapper's idle time between keyframes: up to runtime.idle_iterations (None:
+        mapping.iterations, as offline, where the tracker waits for the mapper and it has no idle time)."""
+        idle = self.cfg.runtime.idle_iterations
+        return max(idle, self.cfg.mapping.iterations) if self.live and idle is not None else None
+
+    def _stop_early(self, iterations: int) -> bool:
+        """A step ends early when it is behind (catch-up), or past mapping.iterations once a newer keyframe waits."""
+        if self.setup.catch_up_iterations and self._behind(iterations):
+            return True
+        return iterations >= self.cfg.mapping.iterations and self._waiting() > 0
+
+    def _waiting(self) -> int:
+        """Keyframes newer than the one being mapped: received, or still in the queue."""
+        queued = self.ch.board.get(Counter.KEYFRAMES) - self.ch.board.get(Counter.KEYFRAMES_RECEIVED)
+        return len(self.pending) + int(queued)
+
     def _behind(self, iterations: int) -> bool:
         """Newer keyframes wait (received, or still in the queue) and the step has had its share of the catch-up
         budget: `catch_up_iterations` divided among the keyframes waiting, so that a mapper that has fallen behind
         by several keyframes catches up instead of lagging further behind with every step."""
-        queued = self.ch.board.get(Counter.KEYFRAMES) - self.ch.board.get(Counter.KEYFRAMES_RECEIVED)
-        waiting = len(self.pending) + queued
+        waiting = self._waiting()
         return waiting > 0 and iterations * waiting >= self.setup.catch_up_iterations
 
     def _publish(self, step_done: bool = True) -> int:
