@@ -941,7 +941,9 @@ class SlamNode(Node):
             return False
         watched = [sub for sub in self._subscriptions_in
                    if not (sub.topic_name.endswith("camera_info") and self.pipeline.fixed_intrinsics)]
-        if not all(self.count_publishers(sub.topic_name) for sub in watched):
+        # Matched by this subscription, not only known to the graph: a subscription created on activation sees
+        # publishers the graph knew before it has matched them, and a reliable message sent in between is lost.
+        if not all(sub.get_publisher_count() for sub in watched):
             return False
         return self.runtime is not None or self._held.has_room(self._held.bytes // max(len(self._held), 1))
 
