@@ -608,16 +608,21 @@ def test_pipelined_tracker_observes_only_what_the_map_is_fitted_to(room_sequence
     assert len(observed.pending) == 0 and observed.joined == 3
 
 
+def _mapper_worker(monkeypatch, cfg, policy: str, **options):
+    """A mapper worker in this process, on channels of plain queues (its step-control rules, without a map)."""
+    monkeypatch.setattr(workers, "register_optimizer_step_post_hook", lambda hook: None)
+    ch = workers.Channels(None, queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(),
+                          HealthBoard(), Control(), None)
+    setup = workers.WorkerSetup(cfg, Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0), policy, 1, os.getpid(), logging.INFO,
+                                **options)
+    return workers.MapperWorker(setup, ch), ch
+
+
 def test_mapper_catches_up_only_when_a_newer_keyframe_waits(monkeypatch):
     """catch_up_iterations: a mapping step may end early once a newer keyframe is pending or still in the queue
     and the step has had its share of the budget (divided among the waiting keyframes, so that a mapper that fell
     behind by several keyframes catches up)."""
-    monkeypatch.setattr(workers, "register_optimizer_step_post_hook", lambda hook: None)
-    ch = workers.Channels(None, queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), HealthBoard(),
-                          Control(), None)
-    setup = workers.WorkerSetup(load_config("demo"), Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0), "offline", 1, os.getpid(),
-                                logging.INFO, catch_up_iterations=4)
-    mapper = workers.MapperWorker(setup, ch)
+    mapper, ch = _mapper_worker(monkeypatch, load_config("demo"), "offline", catch_up_iterations=4)
     assert not mapper._behind(5)  # nothing newer
     ch.board.add(Counter.KEYFRAMES)  # the tracker queued one
     assert not mapper._behind(3) and mapper._behind(4)
@@ -635,12 +640,8 @@ def test_mapper_catches_up_only_when_a_newer_keyframe_waits(monkeypatch):
 def test_live_mapper_maps_on_while_no_keyframe_waits(monkeypatch, policy):
     """runtime.idle_iterations: live, a step goes on past mapping.iterations into the mapper's idle time, and ends
     there once a newer keyframe waits; offline (the tracker waits for the mapper) steps keep mapping.iterations."""
-    monkeypatch.setattr(workers, "register_optimizer_step_post_hook", lambda hook: None)
-    ch = workers.Channels(None, queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), HealthBoard(),
-                          Control(), None)
     cfg = load_config("demo", {"mapping": {"iterations": 5}, "runtime": {"idle_iterations": 12}})
-    setup = workers.WorkerSetup(cfg, Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0), policy, 1, os.getpid(), logging.INFO)
-    mapper = workers.MapperWorker(setup, ch)
+    mapper, ch = _mapper_worker(monkeypatch, cfg, policy)
     assert mapper._step_iterations() == (12 if policy == "live" else None)
     assert not mapper._stop_early(5) and not mapper._stop_early(11)  # nothing newer: the idle time is used
     ch.board.add(Counter.KEYFRAMES)  # the tracker queued one
