@@ -10,6 +10,7 @@ from typing import Optional, Sequence
 import yaml
 
 from eslam_core.camera import Intrinsics
+from eslam_core.outputs.atomic import OutputWriteError
 
 log = logging.getLogger("eslam")
 
@@ -210,6 +211,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             raise
         # The worker's traceback is already in the log (stderr), written when the crash was detected.
         print(f"eslam: error: {e.summary}; the run was stopped", file=sys.stderr)
+        return 1
+    except OutputWriteError as e:
+        # An output that could not be written (a full disk, a read-only folder): one line per file; the others
+        # were written.
+        for line in str(e).splitlines():
+            print(f"eslam: error: {line}", file=sys.stderr)
         return 1
     except (ValueError, FileNotFoundError) as e:
         # Every input problem is raised as a ValueError subclass whose message names the problem and the fix.

@@ -496,8 +496,8 @@ def _read_yaml(path: Path, chain: tuple = ()) -> dict:
         raise ConfigError(f"config file not found: {path}")
     try:
         data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML: {e}") from None
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise ConfigError(_yaml_error_line(path, e)) from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: the top level must be a mapping of sections (camera:, model:, ...)")
     parent = data.pop("extends", None)
@@ -505,6 +505,19 @@ def _read_yaml(path: Path, chain: tuple = ()) -> dict:
         return data
     parent_path = (path.parent / parent) if str(parent).endswith((".yaml", ".yml")) else preset_path(str(parent))
     return _deep_merge(_read_yaml(parent_path.resolve(), chain + (path,)), data)
+
+
+def _yaml_error_line(path: Path, e: Exception) -> str:
+    """The parser's multi-line report as one line: file:line:column, the problem, what to fix."""
+    if isinstance(e, UnicodeDecodeError):
+        return f"{path}: not valid YAML: not UTF-8 text (byte {e.start}) (fix the file: a config is a text file)"
+    mark = getattr(e, "problem_mark", None)
+    where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
+    problem = getattr(e, "problem", None) or " ".join(str(e).split())
+    context, context_mark = getattr(e, "context", None), getattr(e, "context_mark", None)
+    # An unclosed bracket or quote is found where the file ends: where it opened is what helps.
+    opened = f"; {context} from line {context_mark.line + 1}" if context and context_mark is not None else ""
+    return f"{where}: not valid YAML: {problem} (fix the file there{opened})"
 
 
 def _coerce(value: Any, tp: Any, key: str, source: str) -> Any:
@@ -562,4 +575,6 @@ def load_config(path_or_preset: str | Path, overrides: Optional[dict] = None) ->
 
 
 def save_config(config: Config, path: Path) -> None:
-    path.write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))
+    from eslam_core.outputs.atomic import write_atomic  # written whole or not at all, like every output
+
+    write_atomic(path, yaml.safe_dump(config.to_dict(), sort_keys=False))

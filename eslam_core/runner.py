@@ -26,6 +26,7 @@ from eslam_core.datasets.read_ahead import ReadAhead
 from eslam_core.evaluation.trajectory import ate
 from eslam_core.outputs.export import estimated_trajectory, ground_truth_trajectory, load_checkpoint, map_mesh, save_checkpoint, \
     write_trajectories
+from eslam_core.outputs.atomic import OutputsNotWritten, OutputWriteError, make_output_folder, write_atomic
 from eslam_core.outputs.mesh import EmptyMeshError, save_ply
 from eslam_core.runtime.api import peak_rss_mb
 from eslam_core.slam import SLAM
@@ -67,9 +68,8 @@ def run_sequence(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label
 
     workers / policy / runtime_options: see eslam_core.runtime.make_runtime (1 + "offline" = the lock-step schedule
     in this process)."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, out_dir / "config.yaml")
+    out_dir = make_output_folder(out_dir)
+    save_config(cfg, out_dir / "config.yaml")  # a folder that takes no file fails here, before the run
     torch.manual_seed(cfg.run.seed)
     apply_threads(cfg)
     if workers != 1 or policy != "offline":
@@ -105,13 +105,29 @@ def run_sequence(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label
 def write_outputs(cfg: Config, slam: SLAM, dataset: RGBDDataset, out_dir: Path, *, data_label: str, frames: tuple,
                   n: int, seconds: float, write_mesh: bool, peak_mb: Optional[float] = None,
                   extra: Optional[dict] = None, stopped_by: Optional[str] = None) -> RunSummary:
-    """Trajectories, checkpoint, mesh and summary.json of a run that processed `n` frames in `seconds`."""
-    write_trajectories(slam, out_dir)
-    save_checkpoint(slam, out_dir / "checkpoint.pt")
+    """Trajectories, checkpoint, mesh and summary.json of a run that processed `n` frames in `seconds`.
+
+    A file that cannot be written (e.g. a full disk) does not stop the others: they are all tried, the trajectories
+    (small, the most valuable) first and summary.json (which lists what was not written) last, then the failures
+    are raised (one OutputWriteError line each)."""
+    failed: list[OutputWriteError] = []
+    written: list[Path] = []
+
+    def attempt(save, *args) -> Optional[Path]:
+        try:
+            path = save(*args)
+        except OutputWriteError as e:
+            failed.append(e)
+            return None
+        written.append(path)
+        return path
+
+    attempt(write_trajectories, slam, out_dir)
+    attempt(save_checkpoint, slam, out_dir / "checkpoint.pt")
     mesh_path = None
     if write_mesh and cfg.mesh.enabled:
         try:
-            mesh_path = save_ply(map_mesh(slam, cfg.mesh.resolution), out_dir / "mesh.ply")
+            mesh_path = attempt(save_ply, map_mesh(slam, cfg.mesh.resolution), out_dir / "mesh.ply")
         except EmptyMeshError as e:
             log.error("no mesh written: %s", e)
 
@@ -140,7 +156,12 @@ def write_outputs(cfg: Config, slam: SLAM, dataset: RGBDDataset, out_dir: Path, 
         "torch_threads": torch.get_num_threads(),
         **(extra or {}),
     }
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    if failed:
+        summary["not_written"] = [str(e.path) for e in failed]
+    attempt(write_atomic, out_dir / "summary.json", json.dumps(summary, indent=2))
+    if failed:
+        log.info("written: %s", ", ".join(p.name for p in written) or "nothing")
+        raise failed[0] if len(failed) == 1 else OutputsNotWritten(failed, written)
     return RunSummary(out_dir, n, summary["seconds_per_frame"], rmse, summary["peak_memory_mb"], mesh_path,
                       stopped_by)
 

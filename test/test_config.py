@@ -86,3 +86,25 @@ def test_missing_file_and_unknown_preset(tmp_path):
         load_config(tmp_path / "nope.yaml")
     with pytest.raises(ConfigError, match="unknown preset 'nope'"):
         load_config("nope")
+
+
+def test_a_file_that_is_not_yaml_is_one_line_with_file_line_and_column(tmp_path, capsys):
+    """--config, `extends:` and the node's config_file all read through load_config: the parser's multi-line report
+    becomes one ConfigError line naming file:line:column."""
+    bad = write(tmp_path, "tracking:\n  iterations: 3\n  rays: 4: 5\nmapping: {}\n", "bad.yaml")
+    with pytest.raises(ConfigError) as info:
+        load_config(bad)
+    message = str(info.value)
+    assert "\n" not in message and message.startswith(f"{bad}:3:10: ") and "not valid YAML" in message, message
+    assert "fix the file" in message
+    child = write(tmp_path, "extends: tab.yaml\ntracking: {iterations: 3}\n", "child.yaml")
+    tab = write(tmp_path, "model:\n\ttruncation: 0.1\n", "tab.yaml")
+    with pytest.raises(ConfigError, match=rf"^{tab}:2:1: not valid YAML: [^\n]*\(fix the file[^\n]*$"):
+        load_config(child)
+
+    from eslam_core.cli import main
+
+    code = main(["run", "--config", str(bad), "--data", str(tmp_path / "none"), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2 and f"eslam: error: {bad}:3:" in err and "Traceback" not in err
+    assert len([line for line in err.splitlines() if "YAML" in line]) == 1

@@ -10,17 +10,31 @@ import trimesh
 from eslam_core.outputs.culling import visible_mask
 from eslam_core.evaluation.trajectory import Trajectory, write_tum
 from eslam_core.mapping.scene_map import surface_points
+from eslam_core.outputs.atomic import atomic_output
 from eslam_core.outputs.mesh import MeshSettings, extract_mesh
 from eslam_core.outputs.map_file import CheckpointError, read_checkpoint
 from eslam_core.slam import CHECKPOINT_VERSION, SLAM
 
 
 def save_checkpoint(slam: SLAM, path: Path) -> Path:
+    """Write the SLAM state; a failed save (e.g. a full disk) is one OutputWriteError line and leaves an older
+    checkpoint of the same name as it was."""
     path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".partial")
-    torch.save(slam.state_dict(), tmp)
-    tmp.replace(path)  # never leave a truncated checkpoint behind an interrupted save
+    state = slam.state_dict()
+    with atomic_output(path, size_hint=tensor_bytes(state)) as tmp:
+        torch.save(state, tmp)
     return path
+
+
+def tensor_bytes(value) -> int:
+    """About the size torch.save gives `value`: its tensors' bytes (the pickle around them is small)."""
+    if isinstance(value, torch.Tensor):
+        return value.numel() * value.element_size()
+    if isinstance(value, dict):
+        return sum(tensor_bytes(v) for v in value.values())
+    if isinstance(value, (list, tuple)):
+        return sum(tensor_bytes(v) for v in value)
+    return 0
 
 
 def load_checkpoint(path: Path, mode: str | None = None) -> SLAM:
@@ -47,11 +61,21 @@ def ground_truth_trajectory(slam: SLAM) -> Trajectory | None:
     return Trajectory(np.array([t for t, _ in known]), np.stack([p for _, p in known]))
 
 
-def write_trajectories(slam: SLAM, out_dir: Path) -> None:
-    write_tum(out_dir / "trajectory.txt", estimated_trajectory(slam))
+def save_trajectory(trajectory: Trajectory, path: Path) -> Path:
+    """A TUM trajectory file, written whole or not at all (atomic_output)."""
+    path = Path(path)
+    with atomic_output(path) as tmp:
+        write_tum(tmp, trajectory)
+    return path
+
+
+def write_trajectories(slam: SLAM, out_dir: Path) -> Path:
+    """trajectory.txt (returned) and, where the frames had one, groundtruth.txt."""
+    path = save_trajectory(estimated_trajectory(slam), out_dir / "trajectory.txt")
     gt = ground_truth_trajectory(slam)
     if gt is not None:
-        write_tum(out_dir / "groundtruth.txt", gt)
+        save_trajectory(gt, out_dir / "groundtruth.txt")
+    return path
 
 
 def observed_bound(slam: SLAM, margin: float) -> np.ndarray:

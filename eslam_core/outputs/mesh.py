@@ -31,6 +31,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from skimage.measure import marching_cubes
 
+from eslam_core.outputs.atomic import write_atomic
+
 SdfFn = Callable[[torch.Tensor], torch.Tensor]  # (N, 3) float32 world points -> (N,) normalised SDF
 ColorFn = Callable[[torch.Tensor], torch.Tensor]  # (N, 3) float32 world points -> (N, 3) RGB in [0, 1]
 VisibleFn = Callable[[np.ndarray], np.ndarray]  # (N, 3) float64 world points -> (N,) bool "seen by a camera"
@@ -435,5 +437,4 @@ def save_ply(mesh: trimesh.Trimesh, path) -> Path:
         raise EmptyMeshError(f"refusing to write an empty mesh to {path}: extraction produced no triangle")
     if not path.parent.is_dir():
         raise FileNotFoundError(f"cannot write {path}: directory {path.parent} does not exist (create it first)")
-    path.write_bytes(trimesh.exchange.ply.export_ply(mesh, encoding="binary"))
-    return path
+    return write_atomic(path, trimesh.exchange.ply.export_ply(mesh, encoding="binary"))

@@ -69,6 +69,7 @@ from eslam_core.mapping.mapper import import_optimiser_code
 from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.mapping.scene_map import SceneMap, initial_extent, surface_points
 from eslam_core.native import load_kernel
+from eslam_core.outputs.atomic import atomic_output
 from eslam_core.representation.field import SceneField
 from eslam_core.runtime.api import peak_rss_mb
 from eslam_core.slam import loaded_slam, new_keyframe
@@ -887,11 +888,11 @@ class MapperWorker:
         # a 300-frame ICL map, at the end of every offline run); a file costs one write and one read.
         if req.path:
             try:
-                torch.save(state, req.path)
+                with atomic_output(req.path, fsync=False) as tmp:  # nothing to keep across a crash: no fsync
+                    torch.save(state, tmp)
                 return req.path
-            except (OSError, RuntimeError) as e:  # (torch's writer raises RuntimeError) e.g. a small /dev/shm
+            except (OSError, RuntimeError) as e:  # e.g. a small /dev/shm; atomic_output removed the partial file
                 log.debug("mapper: snapshot file %s not written (%s); sending the bytes", req.path, e)
-                Path(req.path).unlink(missing_ok=True)
         buf = io.BytesIO()
         torch.save(state, buf)
         return buf.getvalue()
