@@ -241,6 +241,11 @@ class SharedMap:
         self.publish_seconds = time.perf_counter() - start
         return version
 
+    def superseded(self) -> bool:
+        """Whether the mapper has made a newer generation (a grown map) than this one."""
+        with self.meta.lock:
+            return int(self.meta.state[MapMeta.GENERATION]) != self.generation
+
     def read_into(self, field: nn.Module, have_version: int) -> Optional[int]:
         """Copy the newest map into `field` if it is newer than `have_version`; returns its version, or None when
         there is nothing newer (or nothing published yet)."""

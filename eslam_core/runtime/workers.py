@@ -492,10 +492,7 @@ class TrackerWorker:
         if self.map is None:
             self.cores.busy(False)  # the mapper has the machine for the warm-up
         while self.map is None:
-            if self.ch.control.stopping or self.ch.control.exiting or self.ch.control.epoch != self.epoch:
-                raise Interrupted
-            self._receive(POLL_S)
-            self.cores.update()
+            self._interruptible()
 
     def _wait_for_mapper(self, lag: int) -> None:
         """Offline: track against a map at most `lag` keyframes behind (the mapper has the machine meanwhile)."""
@@ -503,10 +500,30 @@ class TrackerWorker:
             return
         self.cores.busy(False)
         while self.ch.board.unmapped_keyframes() > lag:
-            if self.ch.control.stopping or self.ch.control.exiting or self.ch.control.epoch != self.epoch:
-                raise Interrupted
-            self._receive(POLL_S)
-            self.cores.update()
+            self._interruptible()
+
+    def _interruptible(self) -> None:
+        """One poll of a wait that a stop, an exit or a reset ends."""
+        if self.ch.control.stopping or self.ch.control.exiting or self.ch.control.epoch != self.epoch:
+            raise Interrupted
+        self._receive(POLL_S)
+        self.cores.update()
+
+    def _catch_up(self) -> bool:
+        """Offline, a view that left the map waits for every keyframe made so far to be mapped: the tracker can be
+        `max_keyframe_lag` keyframes ahead of the map, and a camera walking into new space (2.5 cm a frame on the
+        synthetic long room) then meets space that only those keyframes saw. Whether it is lost then depended on
+        how far the mapper had got. True when the map moved on."""
+        if self.ch.board.unmapped_keyframes() == 0:
+            return False
+        version = self.map_version
+        with self.ch.board.timed(Counter.TRACK_WAIT_S):
+            self._wait_for_mapper(0)
+            while self.map.superseded():  # a grown map: its MapAttach was sent before the step counted as done
+                self._interruptible()
+        self._refresh_map()
+        self.cores.busy(True)
+        return self.map_version != version
 
     def _refresh_map(self) -> None:
         version = self.replica.refresh(self.map, self.map_version)
@@ -544,7 +561,8 @@ class TrackerWorker:
             self._hand_over(kf, extent)
         else:
             with board.timed(Counter.TRACK_ALIGN_S):
-                tracked = self.frontend.track(pf, self.replica, self.trajectory)
+                tracked = self.frontend.track(pf, self.replica, self.trajectory,
+                                              None if self.live else self._catch_up)
             # (as in the lock-step SLAM: localization refines nothing, each frame is its own anchor)
             keyframe = tracked.keyframe or self.cfg.run.mode == "localization"
             record = self.trajectory.record(pf.index, pf.timestamp, tracked.pose.double().numpy(), tracked.loss,

@@ -24,7 +24,7 @@ import logging
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import Optional, Protocol
+from typing import Callable, Optional, Protocol
 
 import numpy as np
 import torch
@@ -40,7 +40,7 @@ from eslam_core.representation.field import SceneField
 from eslam_core.tracking.odometry import FrameOdometry
 from eslam_core.tracking.quality import (RESIDUAL_WINDOW, Quality, TrackingEvidence, is_lost, tracking_quality,
                                          typical_loss)
-from eslam_core.tracking.render_tracker import constant_velocity, make_tracker, time_ratio
+from eslam_core.tracking.render_tracker import TrackingResult, constant_velocity, make_tracker, time_ratio
 from eslam_core.trajectory import TrackedTrajectory
 
 log = logging.getLogger("eslam")
@@ -48,6 +48,17 @@ log = logging.getLogger("eslam")
 MAX_EXTRAPOLATION = 4.0  # frame gaps the constant-velocity prediction extrapolates over
 MAX_UNINDEXED = 2  # new keyframes waiting for relocalization features (see TrackingFrontEnd.remember)
 DEAD_RECKONED_QUALITY = 0.5  # of a pose from the odometry alone (dead_reckon): trusted less than a tracked one
+
+
+# A view with less of its depth in mapped space than this has left the map: against a map that lags the keyframes,
+# the frame waits for the newer map (TrackingFrontEnd.track's `catch_up`).
+MAPPED_AT_LEAST = 0.5
+
+
+def left_the_map(result: TrackingResult) -> bool:
+    """Whether the tracker found too little of the frame in mapped space to place it."""
+    return not math.isfinite(result.loss) or (math.isfinite(result.mapped_fraction)
+                                              and result.mapped_fraction < MAPPED_AT_LEAST)
 
 
 class MapView(Protocol):
@@ -190,7 +201,11 @@ class TrackingFrontEnd:
             return prev, gap
         return constant_velocity(trajectory.pose(self.good[-2]), prev, gap), gap
 
-    def track(self, pf: PreparedFrame, view: MapView, trajectory: TrackedTrajectory) -> TrackedPose:
+    def track(self, pf: PreparedFrame, view: MapView, trajectory: TrackedTrajectory,
+              catch_up: Optional[Callable[[], bool]] = None) -> TrackedPose:
+        """The frame's pose against `view`. `catch_up`: for a map that lags the keyframes (the pipelined runtime,
+        offline), brings the view up to every keyframe made so far and says whether it changed; it is called when
+        the view has left the mapped space, and the frame is then tracked again on the newer map."""
         odometry_frame = self.odometry.frame(pf.rgb, pf.depth) if self.odometry is not None else None
         predicted, gap = self.predict(pf, trajectory, odometry_frame)
         init = torch.from_numpy(orthonormalize(predicted)).float()
@@ -207,6 +222,9 @@ class TrackingFrontEnd:
         # (The extent test uses the starting pose: a few centimetres off at most, and it saves a second pass.)
         result = self.tracker.track(view.field, pf, init, view.extent, view.observed, view.newest_keyframe(),
                                     view.version)
+        if catch_up is not None and left_the_map(result) and catch_up():
+            result = self.tracker.track(view.field, pf, init, view.extent, view.observed, view.newest_keyframe(),
+                                        view.version)
         pose = result.pose
         if not torch.isfinite(pose).all():  # a diverged optimisation must not poison the trajectory and the map
             log.warning("frame %d: tracking diverged (non-finite pose); keeping the motion model's prediction",

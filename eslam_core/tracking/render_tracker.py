@@ -39,6 +39,9 @@ class TrackingResult:
     depth_fraction: float = float("nan")
     inlier_fraction: float = float("nan")
     observed_fraction: float = float("nan")
+    # Depth points inside the border that the map can score at the starting pose (in its extent and, for the SDF
+    # tracker, in observed space) / depth points inside the border: low when the view has left the mapped space.
+    mapped_fraction: float = float("nan")
 
 
 def draw_in_extent(candidates: torch.Tensor, n: int, world_points, extent: np.ndarray | None
@@ -121,7 +124,8 @@ class Tracker:
             candidates = self._in_observed_space(candidates, depth, start, observed)
         depth_fraction = with_depth * inside / max(int(self.border.sum()), 1)
         if len(candidates) < 10 or tc.iterations == 0:
-            return TrackingResult(init_pose.clone(), float("nan"), len(candidates), depth_fraction)
+            return TrackingResult(init_pose.clone(), float("nan"), len(candidates), depth_fraction,
+                                  mapped_fraction=inside)
         t, q = pose_to_params(start)
         t.requires_grad_(True)
         q.requires_grad_(True)
@@ -149,7 +153,8 @@ class Tracker:
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
-        return TrackingResult(best_pose.cpu(), float(best_loss), len(candidates), depth_fraction, float(best_inliers))
+        return TrackingResult(best_pose.cpu(), float(best_loss), len(candidates), depth_fraction, float(best_inliers),
+                              mapped_fraction=inside)
 
     def _in_observed_space(self, candidates: torch.Tensor, depth: torch.Tensor, pose: torch.Tensor,
                            observed: ObservedSurfaces) -> torch.Tensor:

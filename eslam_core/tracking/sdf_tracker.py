@@ -153,7 +153,7 @@ class SDFTracker:
             self.dirs_cam[pix], depth[pix], start), extent)
         depth_fraction = len(candidates) * inside / self.border_pixels
         if len(pix) < 50 or tc.iterations == 0:
-            return TrackingResult(init_pose.clone(), float("nan"), len(pix), depth_fraction)
+            return TrackingResult(init_pose.clone(), float("nan"), len(pix), depth_fraction, mapped_fraction=inside)
         p_cam = (self.dirs_cam[pix] * depth[pix, None]).double()
         lam = tc.color_weight
         grey_pixel = to_grey(image.reshape(-1, 3)[pix]) if lam > 0 else None
@@ -223,4 +223,5 @@ class SDFTracker:
             best = torch.eye(4)
             best[:3, :3], best[:3, 3] = best_Rt[0].float().cpu(), best_Rt[1].float().cpu()
         observed_fraction = float(seen.float().mean()) if seen is not None else float("nan")
-        return TrackingResult(best, best_cost, len(pix), depth_fraction, inliers, observed_fraction)
+        mapped = inside * (observed_fraction if seen is not None else 1.0)
+        return TrackingResult(best, best_cost, len(pix), depth_fraction, inliers, observed_fraction, mapped)
