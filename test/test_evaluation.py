@@ -39,6 +39,7 @@ from eslam_core.evaluation.trajectory import (
     ate,
     read_tum,
     rpe,
+    still_camera_ate,
     umeyama_alignment,
     write_tum,
 )
@@ -178,6 +179,13 @@ def test_ate_is_zero_for_a_rigidly_moved_copy():
     np.testing.assert_allclose(result.transform, np.linalg.inv(motion), atol=1e-9)
     # Without alignment the same copy is far off: the shift is 2.3 m.
     assert ate(est, gt, align=False).rmse > 1.0
+
+
+def test_still_camera_ate_is_the_ate_of_a_constant_pose():
+    gt = smooth_trajectory()
+    still = Trajectory(gt.timestamps, np.repeat(gt.poses[:1], len(gt), axis=0))
+    assert still_camera_ate(gt.positions) == pytest.approx(ate(still, gt).rmse, rel=1e-9)
+    assert still_camera_ate(gt.positions) > 0.1
 
 
 def test_ate_of_gaussian_noise_matches_the_noise():

@@ -216,6 +216,14 @@ def ate(est: Trajectory, gt: Trajectory, max_dt: float = 0.02, align: bool = Tru
     )
 
 
+def still_camera_ate(positions: np.ndarray) -> float:
+    """The ATE RMSE (metres) of a camera that never moved, against the true `positions` (n, 3): after the best
+    rigid alignment its one position lands on their centroid. An accuracy bound on a path must be well below this,
+    or a tracker that returns a constant pose passes it."""
+    positions = np.asarray(positions, dtype=np.float64)
+    return float(np.sqrt(np.mean(np.sum((positions - positions.mean(axis=0)) ** 2, axis=1))))
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # RPE
 
