@@ -1,6 +1,8 @@
 """The same method on any device (`run.device`): lookups, rendering, mapping, tracking and the shared map of the
 pipelined runtime run on the `device` fixture's device (the CPU always, a CUDA GPU when torch sees one) and give
 the CPU's results; a config asking for a GPU the machine lacks stops with one clear line."""
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -311,4 +313,11 @@ def test_doctor_reports_what_the_installation_runs_on(capsys):
     assert f"torch {torch.__version__}" in out
     assert f"auto picks {resolve_device('auto')}" in out
     assert "plane_lookup" in out and ("compiled" in out or "fallback to plain torch" in out)
-    assert "rclpy" in out
+    assert "rclpy importable" in out  # the test install has the ROS extra
+
+
+def test_doctor_says_how_to_install_a_missing_rclpy(capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "rclpy", None)  # an import of it raises ImportError
+    assert main(["doctor"]) == 0
+    out = capsys.readouterr().out
+    assert "rclpy not importable" in out and "pip install -e '.[ros]'" in out

@@ -29,7 +29,7 @@ from visualization_msgs.msg import MarkerArray
 
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config, ConfigError, load_config
-from eslam_core.evaluation.trajectory import Trajectory, ate
+from eslam_core.evaluation.trajectory import Trajectory, ate, still_camera_ate
 from eslam_ros.bag import write_bag
 from eslam_ros.conversions import camera_info_from_intrinsics, depth_to_image, msg_to_pose, rgb_to_image, \
     stamp_to_sec
@@ -365,6 +365,7 @@ def test_node_declares_every_parameter_and_refuses_changes_while_running(ros):
 # ------------------------------------------------------------------------------------------------ end to end
 
 N_FRAMES = 12
+E2E_ATE_BOUND = 0.015  # metres; the replay's poses were 0.09-0.22 cm off in 3 runs
 TOPICS = {"rgb/image": "/camera/color/image_raw", "depth/image": "/camera/depth/image_raw",
           "rgb/camera_info": "/camera/color/camera_info"}
 
@@ -470,7 +471,7 @@ def _publish_bad_inputs(listener: Listener, t0: float) -> None:
 
 def test_end_to_end_bag_replay_through_the_node(room_sequence, node_process, tmp_path):
     process, out, log_path = node_process
-    sequence = room_sequence.subset(0, N_FRAMES)
+    sequence = room_sequence.subset(0, 2 * N_FRAMES, 2)  # 20 cm walked: a camera that never moves is 6 cm off
     bag = write_bag(sequence, tmp_path / "room.mcap").path
     listener = Listener()
     try:
@@ -513,7 +514,8 @@ def test_end_to_end_bag_replay_through_the_node(room_sequence, node_process, tmp
         estimate = Trajectory(got, np.stack([msg_to_pose(p.pose) for p in listener.poses]))
         truth = Trajectory(stamps, np.stack(sequence.gt_poses()))
         error = ate(estimate, truth, max_dt=1e-3)
-        assert error.n == N_FRAMES and error.rmse < 0.05, error.rmse
+        assert E2E_ATE_BOUND < 0.5 * still_camera_ate(truth.positions)
+        assert error.n == N_FRAMES and error.rmse < E2E_ATE_BOUND, error.rmse
 
         # ~/save_mesh writes a mesh.
         client = listener.node.create_client(Trigger, "/slam_node/save_mesh")
