@@ -10,6 +10,7 @@ from typing import Optional, Sequence
 import yaml
 
 from eslam_core.camera import Intrinsics
+from eslam_core.config import list_presets
 from eslam_core.outputs.atomic import OutputWriteError
 
 log = logging.getLogger("eslam")
@@ -131,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("run", help="run SLAM on a data set")
-    r.add_argument("--config", required=True, help="YAML file or preset name (replica, scannet, tum, icl, demo, fast)")
+    r.add_argument("--config", required=True, help=f"YAML file or preset name ({', '.join(list_presets())})")
     r.add_argument("--data", required=True, help="data set folder (TUM, ICL-NUIM, Replica, ScanNet, 7-Scenes)")
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--frames", type=parse_frames, default=(0, None), help="A:B, frames to run (default all)")

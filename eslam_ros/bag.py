@@ -40,7 +40,7 @@ from rosbags.typesys import Stores, get_typestore
 from tqdm import tqdm
 
 from eslam_core.cli import parse_frames, parse_overrides
-from eslam_core.config import Config, load_config, save_config
+from eslam_core.config import Config, list_presets, load_config, save_config
 from eslam_core.datasets import RGBDDataset, open_dataset
 from eslam_core.evaluation.trajectory import Trajectory, ate, write_tum
 from eslam_ros.conversions import (
@@ -637,7 +637,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("run", help="run SLAM on a bag: synchronizer + core, no DDS, deterministic")
     r.add_argument("bag", help="bag folder or .mcap / .db3 file")
-    r.add_argument("--config", required=True, help="YAML file or preset name (replica, scannet, tum, icl, demo)")
+    r.add_argument("--config", required=True, help=f"YAML file or preset name ({', '.join(list_presets())})")
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config value")
     r.add_argument("--workers", type=int, default=1, help="SLAM processes (1 = in-process, 2 = tracking + mapping)")
