@@ -114,9 +114,9 @@ class SLAM:
 
 def loaded_slam(path, cfg: Config, intrinsics: Intrinsics) -> "SLAM":
     """A saved map to go on with (`run.mode` slam) or to localize against (localization: the trajectory starts
-    empty), for frames of `intrinsics`; it starts lost. The map's model settings must be the config's."""
-    state = _read_loadable(path, cfg, intrinsics)
-    state["config"]["run"]["mode"] = cfg.run.mode
+    empty), for frames of `intrinsics`; it starts lost. The map must pass `read_loadable`'s checks."""
+    state = read_loadable(path, cfg, intrinsics)
+    state["config"].setdefault("run", {})["mode"] = cfg.run.mode
     slam = SLAM.from_state_dict(state)
     if cfg.run.mode == "localization":
         slam.trajectory = TrackedTrajectory()
@@ -126,25 +126,19 @@ def loaded_slam(path, cfg: Config, intrinsics: Intrinsics) -> "SLAM":
 def loaded_trajectory(path, cfg: Config, intrinsics: Intrinsics) -> TrackedTrajectory:
     """The trajectory `loaded_slam` starts with, without building the map (the pipelined runtime's parent needs
     only this; its workers load the map)."""
-    state = _read_loadable(path, cfg, intrinsics)
+    state = read_loadable(path, cfg, intrinsics)
     if cfg.run.mode == "localization":
         return TrackedTrajectory()
     return TrackedTrajectory.from_state_dict(state["trajectory"])
 
 
-def _read_loadable(path, cfg: Config, intrinsics: Intrinsics) -> dict:
-    from eslam_core.outputs.map_file import read_checkpoint  # (outputs/ builds on this module)
+def read_loadable(path, cfg: Config, intrinsics: Optional[Intrinsics]) -> dict:
+    """The state of the checkpoint at `path` if a runtime of `cfg` can load it for frames of `intrinsics` (None:
+    the camera is not checked): intact, of this version and compatible (map_file.check_compatible); a
+    CheckpointError line otherwise. Every map load goes through here, and so does ~/load_map before it drops
+    the node's map."""
+    from eslam_core.outputs.map_file import check_compatible, read_checkpoint  # (outputs/ builds on this module)
 
     state = read_checkpoint(path, CHECKPOINT_VERSION)
-    check_loadable(state, cfg, intrinsics, path)
+    check_compatible(state, cfg, intrinsics, path)
     return state
-
-
-def check_loadable(state: dict, cfg: Config, intrinsics: Intrinsics, path) -> None:
-    saved = config_from_dict(state["config"], str(path))
-    if saved.model != cfg.model:
-        raise ValueError(f"{path}: the map was made with other model settings (model section of its config) than "
-                         f"this configuration's; use the preset / config it was made with")
-    if Intrinsics(**state["intrinsics"]) != intrinsics:
-        raise ValueError(f"{path}: the map was made for camera {Intrinsics(**state['intrinsics'])}, these frames "
-                         f"come from {intrinsics}; give the camera the map was made with")

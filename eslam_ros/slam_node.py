@@ -58,6 +58,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config, ConfigError
+from eslam_core.outputs.atomic import failure_line, make_output_folder
 from eslam_core.runtime import RuntimeCrashed, make_runtime
 from eslam_ros.conversions import (
     InvalidCameraInfoError,
@@ -1042,17 +1043,24 @@ class SlamNode(Node):
         return response
 
     def _srv_load_map(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        """Drop the current map and continue in the one of `map_file` (from the next frame, relocalized)."""
-        from eslam_core.outputs.map_file import CheckpointError, read_checkpoint
-        from eslam_core.slam import CHECKPOINT_VERSION
+        """Drop the current map and continue in the one of `map_file` (from the next frame, relocalized), once the
+        file passed every check its load makes (slam.read_loadable: intact, this version, this configuration's model
+        settings and image scale, and the session's camera once a frame gave it); a file that fails one is refused
+        with that line and the current map goes on, untouched."""
+        from eslam_core.slam import read_loadable
 
-        if not self.settings.map_file:
-            response.success, response.message = False, "no map_file parameter set: set it to a checkpoint.pt first"
+        path = self.settings.map_file
+        if not path:
+            response.success, response.message = False, ("no map_file parameter set: start the node with "
+                                                         "map_file:=<checkpoint.pt> (parameters are read at start-up)")
             return response
+        camera = self.pipeline.intrinsics  # the session's camera (the next runtime's), None before the first frame
         try:
-            read_checkpoint(Path(self.settings.map_file), CHECKPOINT_VERSION)  # refuse a bad file, keep the map
-        except CheckpointError as error:
-            response.success, response.message = False, str(error)
+            read_loadable(path, self.config, camera)
+        except ValueError as error:  # CheckpointError, one line: what is wrong and what to do
+            kept = "the current map goes on" if self.runtime is not None else "nothing changed"
+            response.success, response.message = False, f"{error} (map not loaded, {kept})"
+            self.get_logger().warning(f"~/load_map refused: {response.message}")
             return response
         with self._lock:
             old, self.runtime = self.runtime, None
@@ -1066,7 +1074,9 @@ class SlamNode(Node):
             self.mesh.reset()
         if old is not None:
             old.close(drain=False)
-        response.success, response.message = True, f"{self.settings.map_file}: the next frame starts in this map"
+        response.success, response.message = True, f"{path}: the next frame starts in this map" + (
+            "" if camera is not None else " (its camera is checked against the first frame's: none received yet)")
+        self.get_logger().info(f"~/load_map: {response.message}")
         return response
 
     def _save(self, response: Trigger.Response, name: str, save: Any) -> Trigger.Response:
@@ -1076,10 +1086,11 @@ class SlamNode(Node):
             return response
         path = self.output_dir / name
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
+            make_output_folder(path.parent)
             save(self.runtime, path)
         except (ValueError, OSError, RuntimeCrashed) as error:
-            response.success, response.message = False, f"could not write {path}: {error}"
+            # One line (a full disk: the space needed and what to do); an older file of that name is intact.
+            response.success, response.message = False, failure_line(path, error)
             self.get_logger().error(response.message)
             return response
         response.success, response.message = True, str(path.resolve())
@@ -1140,16 +1151,18 @@ class SlamNode(Node):
             self._fail(f"the SLAM runtime crashed: {error}")
             return EXIT_FAILED
         if save and not self.failed:
+            # Small and most valuable first: on a disk that fills up, the trajectory is what still gets written;
+            # each failure is one line and does not stop the next output.
             outputs = (("trajectory.txt", runtime.save_trajectory), ("checkpoint.pt", runtime.save_checkpoint),
                        ("mesh.ply", lambda p: runtime.save_mesh(p, resolution=self._mesh_resolution())))
             for name, save_one in outputs:
                 path = self.output_dir / name
                 try:
-                    path.parent.mkdir(parents=True, exist_ok=True)
+                    make_output_folder(path.parent)
                     save_one(path)
                     self.get_logger().info(f"wrote {path}")
                 except (ValueError, OSError) as error:
-                    self.get_logger().error(f"could not write {path}: {error}")
+                    self.get_logger().error(failure_line(path, error))
         return EXIT_FAILED if self.failed else EXIT_OK
 
     def abort(self) -> None:

@@ -123,3 +123,44 @@ def test_eslam_mesh_reports_a_bad_file_in_one_line(tmp_path, capsys):
     assert not list(tmp_path.glob("*.ply"))
     assert eslam(["mesh", str(tmp_path / "missing.pt")]) == 2
     assert "not found" in capsys.readouterr().err
+
+
+def test_a_map_is_checked_against_the_loading_configuration_and_camera_in_one_place(tmp_path):
+    """check_compatible: the checks a runtime's load makes (slam.read_loadable / loaded_slam), each refusal one line
+    naming the setting; the camera is skipped when not known yet (the ROS node before its first frame)."""
+    from eslam_core.outputs.map_file import check_compatible
+    from eslam_core.slam import loaded_slam
+
+    cfg, camera = load_config("fast"), default_intrinsics(64, 48)
+    state = SLAM(cfg, camera).state_dict()
+    path = tmp_path / "checkpoint.pt"
+    check_compatible(state, cfg, camera, path)
+    check_compatible(state, cfg, None, path)
+
+    def refused(state, cfg, intrinsics=camera) -> str:
+        with pytest.raises(CheckpointError) as info:
+            check_compatible(state, cfg, intrinsics, path)
+        message = str(info.value)
+        assert "\n" not in message and str(path) in message and len(message) < 300, message
+        return message
+
+    other_preset = load_config("demo")  # the replica model: fine appearance planes of 0.03 m, not 0.06
+    message = refused(state, other_preset)
+    assert "model.fine_appearance_resolution is 0.06 in the map, 0.03 in this config" in message and "'fast'" in message
+    assert "model.channels" in refused(state, load_config("fast", {"model": {"channels": 8}}))
+    assert "camera.image_scale" in refused(state, load_config("fast", {"camera": {"image_scale": 0.5}}))
+    message = refused(state, cfg, default_intrinsics(80, 60))
+    assert "made for camera 64x48 fx=54.32522" in message and "come from 80x60 fx=67.906525" in message
+    check_compatible(state, cfg, None, path)  # the camera unknown: that check waits, the others ran above
+    assert "model.fine_appearance_resolution" in refused(state, other_preset, None)
+    broken = dict(state, trajectory=None)
+    assert "incomplete map: no trajectory" in refused(broken, cfg)
+    broken = dict(state, map={k: v for k, v in state["map"].items() if k != "keyframes"})
+    assert "incomplete map: no map.keyframes" in refused(broken, cfg)
+    assert "invalid settings" in refused(dict(state, config={**state["config"], "model": {"channels": -1}}), cfg)
+
+    # The loader runs the same check on the file (read_checkpoint first, then check_compatible).
+    save_checkpoint(SLAM(cfg, camera), path)
+    with pytest.raises(CheckpointError, match=r"model\.fine_appearance_resolution is 0\.06 in the map"):
+        loaded_slam(path, other_preset, camera)
+    assert loaded_slam(path, cfg, camera).cfg.model == cfg.model

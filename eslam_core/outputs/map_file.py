@@ -6,14 +6,22 @@ call any function a file names, so the pickle is read only by torch.load(weights
 tensors and plain values and refuses everything else. Before that, the file must be a zip archive whose entries
 all pass their CRC check: a plain pickle (which torch would hand to its legacy reader), random bytes, a truncated
 copy or flipped bits are refused without being unpickled at all.
+
+A map that reads is then checked against the configuration and camera that would load it (check_compatible): every
+load runs that check, and so does the ROS node's ~/load_map before it lets go of its current map.
 """
 from __future__ import annotations
 
+import dataclasses
 import pickle
 import zipfile
 from pathlib import Path
+from typing import Optional
 
 import torch
+
+from eslam_core.camera import Intrinsics
+from eslam_core.config import Config, config_from_dict
 
 ZIP_MAGIC = b"PK\x03\x04"
 RERUN = "re-run `eslam run` (or save the map again) to make a new one"
@@ -28,8 +36,12 @@ def read_checkpoint(path: Path | str, version: int) -> dict:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path} (an `eslam run --out DIR` writes DIR/checkpoint.pt)")
-    with path.open("rb") as f:
-        magic = f.read(len(ZIP_MAGIC))
+    try:
+        with path.open("rb") as f:
+            magic = f.read(len(ZIP_MAGIC))
+    except OSError as e:
+        raise CheckpointError(f"{path} cannot be read ({e.strerror or type(e).__name__}); check its permissions") \
+            from None
     if magic != ZIP_MAGIC:
         raise CheckpointError(f"{path} is not an ESLAM checkpoint (not an archive written by torch.save); "
                               f"give the checkpoint.pt of a run")
@@ -54,6 +66,48 @@ def read_checkpoint(path: Path | str, version: int) -> dict:
         raise CheckpointError(f"{path} is a version {state['version']} checkpoint, this eslam reads version "
                               f"{version}; {RERUN} with this version")
     return state
+
+
+# What SLAM.from_state_dict reads from a state (a file without them is not a map eslam wrote).
+STATE_PARTS = {"config": dict, "intrinsics": dict, "map": dict, "trajectory": dict}
+MAP_PARTS = ("extent", "field", "keyframes", "keyframes_made", "points_outside", "points_seen", "rng")
+TRAJECTORY_PARTS = ("records", "keyframe_poses")
+
+
+def check_compatible(state: dict, cfg: Config, intrinsics: Optional[Intrinsics], path: Path | str) -> None:
+    """Every check a runtime's load of the map in `state` (read by read_checkpoint) makes, before any map is built:
+    the state is complete, its config valid, its model settings and camera.image_scale are `cfg`'s and (if known)
+    it was made for frames of `intrinsics`. CheckpointError, one line naming the problem and the fix, otherwise.
+    Loading (slam.read_loadable) and the ROS node's ~/load_map, before it drops its map, both run this."""
+    missing = [k for k, kind in STATE_PARTS.items() if not isinstance(state.get(k), kind)]
+    missing += [f"map.{k}" for k in MAP_PARTS if "map" not in missing and k not in state["map"]]
+    missing += [f"trajectory.{k}" for k in TRAJECTORY_PARTS if "trajectory" not in missing
+                and k not in state["trajectory"]]
+    if missing:
+        raise CheckpointError(f"{path} is damaged (incomplete map: no {', '.join(missing)}); {RERUN}")
+    try:
+        saved = config_from_dict(state["config"], "its config")
+        saved_intrinsics = Intrinsics(**state["intrinsics"])
+    except (ValueError, TypeError) as e:
+        raise CheckpointError(f"{path} is damaged (invalid settings inside: {_first_line(e)}); {RERUN}") from None
+    if saved.model != cfg.model:
+        other = [f"model.{f.name} is {getattr(saved.model, f.name)!r} in the map, {getattr(cfg.model, f.name)!r} "
+                 f"in this config" for f in dataclasses.fields(saved.model)
+                 if getattr(saved.model, f.name) != getattr(cfg.model, f.name)]
+        more = f" (and {len(other) - 2} more)" if len(other) > 2 else ""
+        raise CheckpointError(f"{path} was made with other model settings: {'; '.join(other[:2])}{more}; use the "
+                              f"preset / config the map was made with ('{saved.name}') or make the map again")
+    if saved.camera.image_scale != cfg.camera.image_scale:
+        raise CheckpointError(f"{path} holds keyframes at camera.image_scale {saved.camera.image_scale}, this "
+                              f"configuration has {cfg.camera.image_scale}; set camera.image_scale to "
+                              f"{saved.camera.image_scale} to use this map")
+    if intrinsics is not None and saved_intrinsics != intrinsics:
+        raise CheckpointError(f"{path} was made for camera {_camera(saved_intrinsics)}, these frames come from "
+                              f"{_camera(intrinsics)}; use that camera, or make a map with this one")
+
+
+def _camera(i: Intrinsics) -> str:
+    return f"{i.width}x{i.height} fx={i.fx:.8g} fy={i.fy:.8g} cx={i.cx:.8g} cy={i.cy:.8g}"
 
 
 def _first_line(e: BaseException) -> str:
