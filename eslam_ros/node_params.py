@@ -9,8 +9,8 @@ The node has two kinds of parameters:
   ROS parameters cannot nest lists, so it is given flat: [xmin, ymin, zmin, xmax, ymax, zmax].
 
 Where the ESLAM configuration comes from, later entries winning:
-  1. the shipped preset named by `preset` (fast, replica, tum, icl, scannet, demo), or, when `config_file` is set,
-     that YAML file instead (it names its own base preset with `extends:`);
+  1. the shipped preset named by `preset` (live, the default; fast, replica, tum, icl, scannet, demo), or, when
+     `config_file` is set, that YAML file instead (it names its own base preset with `extends:`);
   2. every `eslam.*` parameter given in a parameter file or on the command line.
 The node declares every `eslam.*` parameter with the value of step 1 as its default, so `ros2 param list / get`
 shows the configuration actually in use. The result is validated by the configuration's own checks.
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Union
@@ -53,17 +54,21 @@ class NodeSettings:
     """What the node does around the SLAM core. Field metadata: ROS parameter name and description."""
 
     preset: str = _param("live", "preset", "eslam_core preset the configuration starts from (live: a 30 Hz camera on "
-                                           "2 cores; fast: offline on a CPU; replica, tum, icl, scannet, demo: the "
-                                           "paper's settings)")
+                                           "2 cores; fast: offline on a CPU; replica, tum, icl, scannet: the paper's "
+                                           "settings; demo: the embedded synthetic room)")
     config_file: str = _param("", "config_file", "eslam_core YAML file used instead of `preset` (it may `extends:` "
                                                  "a preset); empty = use the preset")
-    map_frame: str = _param("map", "map_frame", "frame_id of published poses, path and mesh (the first camera pose)")
+    map_frame: str = _param("map", "map_frame", "frame_id of published poses, path and mesh (the first camera's "
+                                                "optical frame, squared with the scene; in REP 105 mode odom_frame "
+                                                "at the first frame)")
     output_dir: str = _param("eslam_output", "output_dir", "folder for saved trajectory, mesh and checkpoint "
-                                                           "(services and shutdown)")
+                                                           "(services and shutdown; relative to the working "
+                                                           "directory)")
     workers: int = _param(2, "workers", "SLAM runtime processes: 2 = tracking and mapping in parallel processes, "
                                         "1 = in-process")
-    policy: str = _param("live", "policy", "live: track the newest frame, drop frames while busy; offline: queue "
-                                           "every frame (the node falls behind a fast camera)")
+    policy: str = _param("live", "policy", "live: track the newest frame, drop (and count) frames while busy; "
+                                           "offline: every frame in order (the node stops taking messages while "
+                                           "SLAM is behind: use input_qos reliable and a deep input_queue_depth)")
     input_qos: str = _param("sensor_data", "input_qos", "QoS of the input subscriptions: sensor_data (best effort, "
                                                         "matches every publisher) or reliable")
     input_queue_depth: int = _param(30, "input_queue_depth", "history depth of the input subscriptions (30: a "
@@ -83,9 +88,11 @@ class NodeSettings:
     mesh_resolution: float = _param(0.0, "mesh_resolution", "voxel size (m) of the published and saved meshes; "
                                                             "0 = eslam.mesh.resolution")
     mesh_triangle_budget: int = _param(100_000, "mesh_triangle_budget", "most triangles published on ~/mesh "
-                                                                        "(evenly thinned above it)")
-    mesh_block_size: float = _param(1.0, "mesh_block_size", "edge (m) of the world blocks ~/mesh is cut into: one "
-                                                             "marker per block, re-sent only when its surface changed")
+                                                                        "(above it every 2nd, 4th, ... triangle of "
+                                                                        "each block)")
+    mesh_block_size: float = _param(1.0, "mesh_block_size", "edge (m) of the world blocks ~/mesh is cut into (rounded "
+                                                             "to a whole number of voxels): one marker per block, "
+                                                             "re-sent only when its surface changed")
     mesh_time_budget: float = _param(0.5, "mesh_time_budget", "seconds of meshing per ~/mesh message: a large map is "
                                                               "meshed in pieces, changed blocks first")
     mesh_duty: float = _param(0.4, "mesh_duty", "most share of the time the mesh process works (after a job of t s "
@@ -94,10 +101,11 @@ class NodeSettings:
                                              "time that no other process wants")
     path_period: float = _param(1.0, "path_period", "seconds between ~/path publications")
     status_period: float = _param(1.0, "status_period", "seconds between ~/status publications")
-    publish_tf: bool = _param(True, "publish_tf", "broadcast map_frame -> camera frame on /tf (when tf2_ros is "
-                                                  "installed)")
-    tf_child_frame: str = _param("", "tf_child_frame", "child frame of the TF and of ~/odom; empty = the image "
-                                                       "header's frame_id")
+    publish_tf: bool = _param(True, "publish_tf", "broadcast on /tf (camera mode: map_frame -> camera frame; REP 105 "
+                                                  "mode: map_frame -> odom_frame) when tf2_ros or tf2_msgs can be "
+                                                  "imported")
+    tf_child_frame: str = _param("", "tf_child_frame", "camera mode: child frame of the TF and of ~/odom; empty = "
+                                                       "the image header's frame_id")
     log_throttle: float = _param(5.0, "log_throttle", "seconds between two log lines about the same kind of "
                                                       "skipped frame")
     time_jump_reset: float = _param(1.0, "time_jump_reset", "a stamp this many seconds older than the last one "
@@ -107,11 +115,13 @@ class NodeSettings:
                                            "from, at start and on ~/load_map; the camera starts lost and is "
                                            "relocalized; with eslam.run.mode localization the map is not changed")
     save_on_shutdown: bool = _param(True, "save_on_shutdown", "save trajectory, mesh and checkpoint to output_dir "
-                                                              "on Ctrl-C / SIGTERM")
+                                                              "on Ctrl-C / SIGTERM (and on lifecycle cleanup / "
+                                                              "shutdown)")
     start_queue_bytes: int = _param(512 * 2**20, "start_queue_bytes", "offline policy: bytes of frames kept while "
-                                                                      "the SLAM runtime starts (frames beyond are "
-                                                                      "dropped and counted); the live policy keeps "
-                                                                      "the newest 30")
+                                                                      "the SLAM runtime starts (512 MiB: ~250 frames "
+                                                                      "of 640x480; beyond it the oldest are dropped "
+                                                                      "and counted); the live policy keeps the "
+                                                                      "newest 30")
     # ---- the robot's TF tree (REP 105) and external odometry
     odom_frame: str = _param("", "odom_frame", "the robot's odometry frame (e.g. odom); with base_frame set the node "
                                                "publishes map_frame -> odom_frame (REP 105) instead of map_frame -> "
@@ -122,7 +132,8 @@ class NodeSettings:
                                                      "nav_msgs/Odometry on `odom`), or auto (tf when tf2_ros is "
                                                      "installed, else topic)")
     base_to_camera: tuple = _param((), "base_to_camera", "[x, y, z, qx, qy, qz, qw]: pose of the camera's optical "
-                                                         "frame (the image frame_id) in base_frame; empty = from TF")
+                                                         "frame (the image frame_id) in base_frame; empty = from TF "
+                                                         "(write floats, 0.0 not 0: a ROS array holds one type)")
     pose_frame: str = _param("camera", "pose_frame", "whose pose ~/pose, ~/odom and ~/path give: camera (the image "
                                                      "frame_id) or base (base_frame)")
     odom_wait: float = _param(0.1, "odom.wait", "seconds of images (stamps) a frame waits for the odometry at its "
@@ -343,3 +354,55 @@ def resolve_config(settings: NodeSettings, overrides: Mapping[str, ParamValue]) 
     values.update(overrides)
     origin = f"config file {settings.config_file}" if settings.config_file else f"preset '{settings.preset}'"
     return config_from_parameters(values, f"ROS parameters eslam.* over {origin}")
+
+
+# ------------------------------------------------------------------------------------------ docs/ros.md's tables
+
+
+def node_settings_markdown() -> str:
+    """docs/ros.md's table of the node settings: every NodeSettings field, its default and its description."""
+    rows = ["| parameter | default | meaning |", "|---|---|---|"]
+    for name, (default, doc) in node_parameter_defaults().items():
+        doc = re.sub(r"(?<![`\w])(~/\w+|/tf\b)", r"`\1`", doc)  # topic names as code (a lone ~ is strikethrough)
+        rows.append(f"| `{name}` | `{_yaml_text(default)}` | {doc} |")
+    return "\n".join(rows)
+
+
+def eslam_keys_markdown() -> str:
+    """docs/ros.md's list of the `eslam.<section>.<key>` parameters: every key of eslam_core's Config by section."""
+    rows, cfg = ["| section | keys |", "|---|---|"], Config()
+    for f in dataclasses.fields(cfg):
+        section = getattr(cfg, f.name)
+        if not dataclasses.is_dataclass(section):
+            rows.append(f"| (top level) | `{f.name}` |")
+            continue
+        keys = []
+        for key in dataclasses.fields(section):
+            value = getattr(section, key.name)
+            keys.append(f"{key.name}.{{{','.join(k.name for k in dataclasses.fields(value))}}}"
+                        if dataclasses.is_dataclass(value) else key.name)
+        rows.append(f"| {f.name} | `{' '.join(keys)}` |")
+    return "\n".join(rows)
+
+
+MARKDOWN_TABLES = {"node": node_settings_markdown, "eslam": eslam_keys_markdown}
+
+
+def _yaml_text(value: Any) -> str:
+    """A default as a parameter file writes it: "text", true, 0.5, [0.1, 0.0]."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_yaml_text(v) for v in value) + "]"
+    return repr(value)
+
+
+if __name__ == "__main__":  # python -m eslam_ros.node_params --markdown node|eslam
+    import argparse
+
+    parser = argparse.ArgumentParser(description="print a table of docs/ros.md, generated from the code")
+    parser.add_argument("--markdown", choices=sorted(MARKDOWN_TABLES), required=True,
+                        help="node: the node settings (NodeSettings); eslam: the eslam.* keys by section (Config)")
+    print(MARKDOWN_TABLES[parser.parse_args().markdown]())
