@@ -29,7 +29,7 @@ from visualization_msgs.msg import MarkerArray
 
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config, ConfigError, load_config
-from eslam_core.evaluation.trajectory import Trajectory, ate, still_camera_ate
+from eslam_core.evaluation.trajectory import Trajectory, ate, read_tum, still_camera_ate
 from eslam_ros.bag import write_bag
 from eslam_ros.conversions import camera_info_from_intrinsics, depth_to_image, msg_to_pose, rgb_to_image, \
     stamp_to_sec
@@ -365,6 +365,7 @@ def test_node_declares_every_parameter_and_refuses_changes_while_running(ros):
 # ------------------------------------------------------------------------------------------------ end to end
 
 N_FRAMES = 12
+RELOCALIZED_BOUND = 0.02  # metres; B's last pose against that reference: 1.1-2.4 mm in 4 runs
 E2E_ATE_BOUND = 0.015  # metres; the replay's poses were 0.09-0.22 cm off in 3 runs
 TOPICS = {"rgb/image": "/camera/color/image_raw", "depth/image": "/camera/depth/image_raw",
           "rgb/camera_info": "/camera/color/camera_info"}
@@ -587,11 +588,16 @@ def test_a_map_saved_by_one_node_is_reused_by_another_which_relocalizes(room_seq
                                    b), (listener.health(), (tmp_path / "b.log").read_text()[-3000:])
         assert listener.spin_until(lambda: stamp_to_sec(listener.poses[-1].header.stamp) == pytest.approx(
             later.timestamps()[-1]), 30.0, b)  # the last frame is found (lost frames publish no pose)
-        # A's map starts at its first camera, and is as right as A's live tracking of a few frames: the last pose
-        # was up to 6.3 cm off in 6 runs (3 over 5 cm, before and after session 9's changes), mostly along the
-        # view; a relocalization against the wrong keyframe or in the wrong frame is off by tens of centimetres.
-        truth = np.linalg.inv(first.gt_poses()[0]) @ later.gt_poses()[-1]
-        assert np.linalg.norm(msg_to_pose(listener.poses[-1].pose)[:3, 3] - truth[:3, 3]) < 0.08
+        # B is found in A's map, which is only as right as A's tracking of a few frames at the test's settings, in
+        # a frame squared with the scene: against the first camera's frame B's last pose was up to 6.3 cm off in 6
+        # runs and 8.3 cm in one CI run (a bound of 8 cm). The reference is A's own pose of its last frame moved by
+        # the true motion since: it measures B's relocalization and tracking, not A's map. Where A's map ended is
+        # 7.5 cm from it.
+        a_last = read_tum(tmp_path / "a" / "trajectory.txt").poses[-1]
+        reference = a_last @ np.linalg.inv(first.gt_poses()[-1]) @ later.gt_poses()[-1]
+        assert RELOCALIZED_BOUND < 0.5 * np.linalg.norm(a_last[:3, 3] - reference[:3, 3])
+        error = np.linalg.norm(msg_to_pose(listener.poses[-1].pose)[:3, 3] - reference[:3, 3])
+        assert error < RELOCALIZED_BOUND, error
         b.send_signal(signal.SIGINT)
         assert b.wait(120) == 0, (tmp_path / "b.log").read_text()[-3000:]
         assert saved.read_bytes() == before
