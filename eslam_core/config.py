@@ -284,6 +284,10 @@ class QualityConfig:
     # view half of which is new is not (ICL restart near the map's edge: 41-45 % observed, right to 3 mm).
     found_observed_low: float = 0.15
     found_observed_high: float = 0.35
+    # A pose whose covariance (tracking/information.py) has a position axis beyond `degraded_sigma_m` or a rotation
+    # axis beyond `degraded_sigma_deg` is degraded: the view leaves it free in some direction (quality.py).
+    degraded_sigma_m: float = 0.02
+    degraded_sigma_deg: float = 2.0
     lost_below: float = 0.5
     found_above: float = 0.7
 
@@ -300,6 +304,8 @@ class QualityConfig:
               "needs 0 <= found_observed_low < found_observed_high <= 1 (fractions of the points)")
         check(0 < self.lost_below <= self.found_above <= 1, "quality.lost_below",
               "needs 0 < lost_below <= found_above <= 1")
+        check(self.degraded_sigma_m > 0 and self.degraded_sigma_deg > 0, "quality.degraded_sigma_m",
+              "degraded_sigma_m and degraded_sigma_deg must be positive")
 
 
 @dataclass

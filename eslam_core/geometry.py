@@ -124,18 +124,22 @@ def scale_motion(M: np.ndarray, factor: float) -> np.ndarray:
     (Rodrigues' formula in numpy: scipy's Rotation costs ~20x more, and a trajectory calls this once per frame.)"""
     out = np.eye(4)
     out[:3, 3] = M[:3, 3] * factor
-    R = M[:3, :3]
+    out[:3, :3] = rotvec_to_matrix(matrix_to_rotvec(M[:3, :3]) * factor)
+    return out
+
+
+def matrix_to_rotvec(R) -> np.ndarray:
+    """The rotation vector (axis * angle in radians) of a rotation matrix: the inverse of rotvec_to_matrix."""
+    R = np.asarray(R, dtype=np.float64)
     angle = float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
     if angle < 1e-9:
-        return out
+        return np.zeros(3)
     if angle > np.pi - 1e-3:  # the axis is ill-defined from the skew part near a half turn
         from scipy.spatial.transform import Rotation
 
-        out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(R).as_rotvec() * factor).as_matrix()
-        return out
+        return Rotation.from_matrix(R).as_rotvec()
     axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2 * np.sin(angle))
-    out[:3, :3] = rotvec_to_matrix(axis * factor * angle)
-    return out
+    return axis * angle
 
 
 def interpolate_pose(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:

@@ -25,7 +25,7 @@ from eslam_core.datasets import RGBDDataset
 from eslam_core.datasets.read_ahead import ReadAhead
 from eslam_core.evaluation.trajectory import ate
 from eslam_core.outputs.export import estimated_trajectory, ground_truth_trajectory, load_checkpoint, map_mesh, save_checkpoint, \
-    write_trajectories
+    tracking_summary, write_trajectories
 from eslam_core.outputs.atomic import OutputsNotWritten, OutputWriteError, make_output_folder, write_atomic
 from eslam_core.outputs.mesh import EmptyMeshError, save_ply
 from eslam_core.runtime.api import peak_rss_mb
@@ -151,6 +151,7 @@ def write_outputs(cfg: Config, slam: SLAM, dataset: RGBDDataset, out_dir: Path, 
         "points_outside_bound": slam.map.points_outside,
         "points_outside_fraction": slam.map.points_outside / max(slam.map.points_seen, 1),
         "ate_rmse_cm": rmse,
+        **tracking_summary(slam.trajectory),
         "config_file": str(out_dir / "config.yaml"),
         "mesh": str(mesh_path) if mesh_path else None,
         "torch_threads": torch.get_num_threads(),

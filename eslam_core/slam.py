@@ -35,6 +35,8 @@ class StepResult:
     quality: float  # of the tracked pose (tracking/quality.py)
     lost: bool  # the camera is lost: the pose is a guess, the frame was not mapped
     anchor: bool  # the frame's record anchors the trajectory: a keyframe, or (localization) every frame
+    covariance: Optional[np.ndarray] = None  # (6, 6) of the tracked pose, x y z roll pitch yaw (information.py)
+    degraded: bool = False  # the view leaves the pose free in some direction: not mapped (quality.py)
 
 
 def new_keyframe(pf: PreparedFrame, pose: torch.Tensor, number: int) -> Keyframe:
@@ -71,7 +73,7 @@ class SLAM:
         # Localization refines nothing: each frame is its own anchor (its pose as tracked).
         anchor = tracked.keyframe or self.cfg.run.mode == "localization"
         self.trajectory.record(pf.index, pf.timestamp, pose, tracked.loss, pf.gt_pose, anchor,
-                               tracked.quality.value, tracked.lost)
+                               tracked.quality.value, tracked.lost, tracked.quality.degraded, tracked.covariance_matrix)
         mapping_loss, refined = float("nan"), {}
         if tracked.keyframe:
             number = self.trajectory.keyframes - 1
@@ -84,7 +86,8 @@ class SLAM:
             self.frontend.refine(step.refined)
             mapping_loss, refined = step.loss, step.refined
         return StepResult(pf.index, self.trajectory.pose(n), tracked.loss, tracked.keyframe, mapping_loss, refined,
-                          tracked.quality.value, tracked.lost, anchor)
+                          tracked.quality.value, tracked.lost, anchor, tracked.covariance_matrix,
+                          tracked.quality.degraded)
 
     # ------------------------------------------------------------------------------------------------ checkpoint
     def state_dict(self) -> dict:

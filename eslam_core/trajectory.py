@@ -27,6 +27,8 @@ class FrameRecord:
     tracked: np.ndarray  # 4x4: the pose when tracked (a keyframe's before mapping refined it)
     quality: float = 1.0  # of the tracked pose, in [0, 1] (tracking/quality.py)
     lost: bool = False  # the camera was lost at this frame: the pose is a guess
+    degraded: bool = False  # the view left the pose free in some direction (tracking/quality.py)
+    covariance: Optional[np.ndarray] = None  # (6, 6) of the tracked pose, x y z roll pitch yaw; None: not measured
 
 
 def frame_pose(records: Sequence[FrameRecord], keyframe_records: dict[int, int],
@@ -46,17 +48,19 @@ def frame_pose(records: Sequence[FrameRecord], keyframe_records: dict[int, int],
 
 
 class _Columns:
-    """The records of a trajectory as growable arrays: 430 bytes a frame (three 4x4 poses, six scalars), about 650
-    with the trajectory's cached pose and keyframe poses, where FrameRecords holding three 4x4 arrays each took
-    1.2 KB, in the tracking process and again in the caller's (80 MB over 20 minutes at 30 Hz)."""
+    """The records of a trajectory as growable arrays: 575 bytes a frame (three 4x4 poses, a 6x6 float32
+    covariance, seven scalars), about 800 with the trajectory's cached pose and keyframe poses, where FrameRecords
+    holding three 4x4 arrays each took 1.2 KB, in the tracking process and again in the caller's (80 MB over 20
+    minutes at 30 Hz)."""
 
     POSES = ("relative", "tracked", "gt_pose")
     SCALARS = {"index": np.int64, "timestamp": np.float64, "reference": np.int64, "tracking_loss": np.float64,
-               "quality": np.float64, "lost": np.bool_}
+               "quality": np.float64, "lost": np.bool_, "degraded": np.bool_}
 
     def __init__(self, capacity: int = 256):
         self.n = 0
         self.arrays = {name: np.zeros((capacity, 4, 4)) for name in self.POSES}
+        self.arrays["covariance"] = np.zeros((capacity, 6, 6), np.float32)
         self.arrays.update({name: np.zeros(capacity, dtype) for name, dtype in self.SCALARS.items()})
 
     def append(self, r: FrameRecord) -> None:
@@ -68,16 +72,21 @@ class _Columns:
         k, a = self.n, self.arrays
         a["relative"][k], a["tracked"][k] = r.relative, r.tracked
         a["gt_pose"][k] = np.nan if r.gt_pose is None else r.gt_pose
+        a["covariance"][k] = np.nan if r.covariance is None else r.covariance
         for name in self.SCALARS:
             a[name][k] = getattr(r, name)
         self.n += 1
 
     @staticmethod
     def of(columns: dict) -> "_Columns":
-        """Records from whole columns (a checkpoint's)."""
+        """Records from whole columns (a checkpoint's; those of a map saved before a column existed are filled
+        with 'not measured')."""
         out = _Columns(0)
-        out.arrays = {name: np.array(columns[name], dtype=a.dtype) for name, a in out.arrays.items()}
-        out.n = len(out.arrays["index"])
+        n = len(columns["index"])
+        missing = {"covariance": np.nan, "degraded": False}
+        out.arrays = {name: np.array(columns[name], dtype=a.dtype) if name in columns else
+                      np.full((n,) + a.shape[1:], missing[name], a.dtype) for name, a in out.arrays.items()}
+        out.n = n
         return out
 
     def column(self, name: str) -> np.ndarray:
@@ -88,10 +97,11 @@ class _Columns:
             raise IndexError(f"record {k} of {self.n}")
         k %= self.n
         a = self.arrays
-        gt = a["gt_pose"][k]
+        gt, covariance = a["gt_pose"][k], a["covariance"][k]
         return FrameRecord(int(a["index"][k]), float(a["timestamp"][k]), int(a["reference"][k]), a["relative"][k],
                            float(a["tracking_loss"][k]), None if np.isnan(gt[0, 0]) else gt, a["tracked"][k],
-                           float(a["quality"][k]), bool(a["lost"][k]))
+                           float(a["quality"][k]), bool(a["lost"][k]), bool(a["degraded"][k]),
+                           None if np.isnan(covariance[0, 0]) else covariance.astype(np.float64))
 
     def __len__(self) -> int:
         return self.n
@@ -119,12 +129,13 @@ class TrackedTrajectory:
         return len(self.keyframe_records)
 
     def record(self, index: int, timestamp: float, pose: np.ndarray, loss: float, gt_pose: Optional[np.ndarray],
-               keyframe: bool, quality: float = 1.0, lost: bool = False) -> FrameRecord:
+               keyframe: bool, quality: float = 1.0, lost: bool = False, degraded: bool = False,
+               covariance: Optional[np.ndarray] = None) -> FrameRecord:
         """Store a tracked frame relative to the newest keyframe (itself, when it is a new keyframe)."""
         pose = np.asarray(pose, dtype=np.float64)
         ref = self.keyframes if keyframe else self.keyframes - 1
         relative = np.eye(4) if keyframe else np.linalg.inv(self.keyframe_pose(ref)) @ pose
-        rec = FrameRecord(index, timestamp, ref, relative, loss, gt_pose, pose, quality, lost)
+        rec = FrameRecord(index, timestamp, ref, relative, loss, gt_pose, pose, quality, lost, degraded, covariance)
         self.append(rec, keyframe)
         return rec
 

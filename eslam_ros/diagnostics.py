@@ -65,6 +65,7 @@ class StatusInputs:
     skipped_now: int = 0
     odometry_problems_now: dict[str, int] = field(default_factory=dict)  # {"odom_missing": 2, ...} this period
     lost: Optional[str] = None  # the camera is lost: why (the newest frame's tracking quality)
+    degraded: Optional[str] = None  # the newest pose is degraded: why (its free direction and sigma)
 
 
 def status_level(inputs: StatusInputs, no_input_timeout: float, min_input_rate: float) -> tuple[bytes, str]:
@@ -84,6 +85,8 @@ def status_level(inputs: StatusInputs, no_input_timeout: float, min_input_rate: 
         return WARN, "starting the SLAM runtime"
     if inputs.lost:
         return WARN, f"tracking lost ({inputs.lost}): no pose published, relocalizing against the keyframes"
+    if inputs.degraded:
+        return WARN, f"tracking degraded ({inputs.degraded}): poses published with that covariance, not mapped"
     if min_input_rate and inputs.measured_for_s >= INPUT_RATE_WINDOW_S and inputs.pair_rate_hz < min_input_rate:
         return WARN, f"input rate {inputs.pair_rate_hz:.1f} Hz is below {min_input_rate:g} Hz"
     if inputs.skipped_now:

@@ -60,6 +60,8 @@ from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config, ConfigError
 from eslam_core.outputs.atomic import failure_line, make_output_folder
 from eslam_core.runtime import RuntimeCrashed, make_runtime
+from eslam_core.tracking.information import PoseCovariance, covariance_at
+from eslam_core.tracking.quality import degenerate_view
 from eslam_ros.conversions import (
     InvalidCameraInfoError,
     InvalidPoseError,
@@ -336,21 +338,29 @@ def pose_stamped(pose: np.ndarray, stamp: Any, frame_id: str) -> PoseStamped:
     return msg
 
 
-# Pose covariance of ~/odom (x y z roll pitch yaw): a well-tracked pose is good to about a centimetre and half a
-# degree, divided by its tracking quality; a lost one is unknown.
+# Pose covariance of ~/odom (x y z roll pitch yaw) where the tracker measured none (a pose from the odometry alone, a
+# tracker without normal equations): a well-tracked pose is good to about a centimetre and half a degree, divided by
+# its tracking quality; a lost one is unknown.
 TRACKED_SIGMA = (0.01, 0.01, 0.01, 0.01, 0.01, 0.01)
 LOST_VARIANCE = 1e6
 
 
-def pose_covariance(quality: float, lost: bool) -> list[float]:
-    variances = [LOST_VARIANCE] * 6 if lost else [(s / max(quality, 0.05)) ** 2 for s in TRACKED_SIGMA]
-    return [float(v) if i % 7 == 0 else 0.0 for i, v in enumerate(np.diag(variances).reshape(-1))]
+def pose_covariance(quality: float, lost: bool, measured: Optional[np.ndarray] = None) -> list[float]:
+    """~/odom's 36 values: the tracker's covariance (6x6, already in the published pose's frame) where it measured
+    one, else the stand-in above."""
+    if lost:
+        return [float(v) for v in np.diag([LOST_VARIANCE] * 6).reshape(-1)]
+    if measured is not None:
+        return [float(v) for v in np.asarray(measured, dtype=np.float64).reshape(-1)]
+    variances = [(s / max(quality, 0.05)) ** 2 for s in TRACKED_SIGMA]
+    return [float(v) for v in np.diag(variances).reshape(-1)]
 
 
 def odometry(pose: np.ndarray, twist: tuple[np.ndarray, np.ndarray], stamp: Any, frame_id: str,
-             child_frame_id: str, quality: float = 1.0, lost: bool = False) -> Odometry:
+             child_frame_id: str, quality: float = 1.0, lost: bool = False,
+             covariance: Optional[np.ndarray] = None) -> Odometry:
     msg = Odometry(child_frame_id=child_frame_id)
-    msg.pose.covariance = pose_covariance(quality, lost)
+    msg.pose.covariance = pose_covariance(quality, lost, covariance)
     msg.header.stamp = stamp
     msg.header.frame_id = frame_id
     msg.pose.pose = pose_to_msg(pose)
@@ -520,6 +530,7 @@ class SlamNode(Node):
         self._previous_pose: Optional[tuple[np.ndarray, float]] = None
         self._last_position = np.zeros(3)  # of the camera in map_frame, where the status text floats
         self._lost = False  # the newest pose update said the camera is lost
+        self._degraded: Optional[str] = None  # the newest pose update was degraded: its free direction
         self._last_image = time.monotonic()
         self._skipped_at_last_status = 0
         self._odometry_problems_at_last_status: dict[str, int] = {}
@@ -854,8 +865,10 @@ class SlamNode(Node):
             previous_output = self._output_pose(previous[0], submitted.frame_id)
             twist = twist_between(previous_output[0], previous[1], output_pose, update.timestamp)
         try:
-            pose, odom = pose_stamped(output_pose, stamp, map_frame), odometry(output_pose, twist, stamp, map_frame,
-                                                                               child, update.quality, update.lost)
+            covariance = None if update.covariance is None else covariance_at(
+                update.covariance, output_pose[:3, 3] - update.pose[:3, 3])  # (the base's, with pose_frame base)
+            pose, odom = pose_stamped(output_pose, stamp, map_frame), odometry(
+                output_pose, twist, stamp, map_frame, child, update.quality, update.lost, covariance)
             tf = self._tf_of(update.pose, frame_odometry, stamp, child)
         except InvalidPoseError as error:  # NaN or not a rotation at all (drift is re-orthonormalised): skip it
             self.outputs.poses_invalid += 1
@@ -865,6 +878,8 @@ class SlamNode(Node):
                     f"poses skipped, {self.outputs.poses} published so far; publishing goes on]")
             return
         self._lost = update.lost
+        self._degraded = degenerate_view(PoseCovariance(update.covariance)) if update.degraded and \
+            update.covariance is not None else None
         if update.lost:  # no pose to act on: ~/odom says so with its covariance, ~/pose and TF wait
             self.odom_pub.publish(odom)
             self.outputs.poses_lost += 1
@@ -1004,7 +1019,8 @@ class SlamNode(Node):
             silent_s={name: self.inputs.silent_for(name, now) for name in self._watched_inputs()} if self.active
             else {}, pair_rate_hz=values["input_rate_hz"], measured_for_s=now - self.inputs.started,
             skipped_now=skipped_now, odometry_problems_now=problems_now if self.odometry else {},
-            lost=f"quality {values.get('tracking_quality', 0.0):.2f}" if self._lost else None),
+            lost=f"quality {values.get('tracking_quality', 0.0):.2f}" if self._lost else None,
+            degraded=self._degraded),
             s.no_input_timeout, s.min_input_rate)
         msg = diagnostic_array(self.diagnostic_name(), s.diagnostics_hardware_id, level, summary, values,
                                self.get_clock().now().to_msg())

@@ -187,7 +187,7 @@ def test_eslam_run_writes_the_trajectory_when_the_checkpoint_does_not_fit(monkey
     assert len(read_tum(out / "trajectory.txt").timestamps) == 2  # written first, before the checkpoint
     summary = json.loads((out / "summary.json").read_text())
     assert summary["not_written"] == [str(out / "checkpoint.pt")] and summary["n_frames"] == 2
-    assert files_in(out) == {"checkpoint.pt", "config.yaml", "trajectory.txt", "summary.json"} | (
+    assert files_in(out) == {"checkpoint.pt", "config.yaml", "trajectory.txt", "pose_quality.csv", "summary.json"} | (
         {"groundtruth.txt"} & files_in(out))
 
 

@@ -46,7 +46,8 @@ def test_room_is_one_closed_mesh_of_labelled_parts(scene):
     assert mesh.is_watertight
     np.testing.assert_allclose(scene.bound, [[-2.0, -1.5, 0.0], [2.0, 1.5, 2.6]])
     np.testing.assert_allclose(mesh.bounds, scene.bound, atol=1e-9)
-    assert set(np.unique(scene.part_ids)) == set(range(len(PART_NAMES)))
+    # every part but the light panels of the degenerate views (datasets/degenerate.py)
+    assert set(np.unique(scene.part_ids)) == set(range(len(PART_NAMES))) - {PART_NAMES.index("lights")}
     np.testing.assert_array_equal(mesh.face_attributes["part"], scene.part_ids)
     # no face is a large sliver: big quads were subdivided
     edges = np.linalg.norm(np.diff(mesh.triangles[:, [0, 1, 2, 0]], axis=1), axis=2)

@@ -106,7 +106,9 @@ class Texture:
       - "stripes": wavy stripes across `direction` (wallpaper);
       - "checker": soft-edged tiles on the plane whose normal is `direction` (floor tiles);
       - "wood":    growth rings around an axis along `direction` through `origin`, grain stretched along it;
-      - "mottled": contrast-stretched fractal noise (plaster, fabric, painted metal).
+      - "mottled": contrast-stretched fractal noise (plaster, fabric, painted metal);
+      - "tiles":   thin seams of `accent` on a square grid, `frequency` lines per metre, in the plane whose normal
+                   is `direction` (a suspended ceiling, panelled walls).
     Frequencies are in cycles per metre; keep them below ~25 so that the pattern does not alias at 320x240.
     """
 
@@ -161,7 +163,23 @@ def _mottled(tex: Texture, p: np.ndarray, noise: ValueNoise) -> np.ndarray:
     return np.clip(0.5 + 2.2 * (noise.fractal(p, tex.frequency) - 0.5), 0.0, 1.0)
 
 
-_PATTERNS = {"stripes": _stripes, "checker": _checker, "wood": _wood, "mottled": _mottled}
+SEAM_WIDTH_M = 0.012  # of the "tiles" pattern's lines
+
+
+def _tiles(tex: Texture, p: np.ndarray, noise: ValueNoise) -> np.ndarray:
+    normal = _unit(tex.direction)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    axis_u = _unit(np.cross(normal, helper))
+    axis_v = np.cross(normal, axis_u)
+    seams = []
+    for axis in (axis_u, axis_v):
+        cycles = tex.frequency * (p @ axis)
+        distance = np.abs(cycles - np.round(cycles)) / tex.frequency  # metres to the nearest seam
+        seams.append(np.exp(-((distance / SEAM_WIDTH_M) ** 2)))
+    return np.maximum(*seams)
+
+
+_PATTERNS = {"stripes": _stripes, "checker": _checker, "wood": _wood, "mottled": _mottled, "tiles": _tiles}
 
 
 def texture_albedo(tex: Texture, points: np.ndarray, noise: ValueNoise) -> np.ndarray:
@@ -180,7 +198,7 @@ def texture_albedo(tex: Texture, points: np.ndarray, noise: ValueNoise) -> np.nd
 # Part names in part-id order; `SyntheticScene.part_ids` indexes this tuple.
 PART_NAMES = (
     "floor", "ceiling", "wall_west", "wall_east", "wall_south", "wall_north",
-    "table_top", "table_legs", "box_red", "box_blue", "cabinet", "sofa", "lamp", "painting",
+    "table_top", "table_legs", "box_red", "box_blue", "cabinet", "sofa", "lamp", "painting", "lights",
 )  # fmt: skip
 WALL_PARTS = ("wall_west", "wall_east", "wall_south", "wall_north")
 
@@ -199,6 +217,7 @@ _TEXTURES = {
     "sofa": Texture("mottled", (0.58, 0.22, 0.22), (0.82, 0.52, 0.40), 14.0, grain=0.3),
     "lamp": Texture("mottled", (0.06, 0.06, 0.07), (0.20, 0.20, 0.22), 8.0),  # dark metal: the sensor fails on it
     "painting": Texture("mottled", (0.92, 0.72, 0.20), (0.10, 0.28, 0.62), 5.0, grain=0.1),
+    "lights": Texture("mottled", (0.99, 0.99, 0.96), (0.96, 0.96, 0.93), 2.0, grain=0.01),  # flush light panels
 }
 
 
@@ -378,7 +397,9 @@ def build_long_room(seed: int = 0) -> SyntheticScene:
     return _assemble(parts, bound, seed)
 
 
-def _assemble(parts: dict[str, list[trimesh.Trimesh]], bound: np.ndarray, seed: int) -> SyntheticScene:
+def _assemble(parts: dict[str, list[trimesh.Trimesh]], bound: np.ndarray, seed: int,
+              textures: Optional[dict[str, Texture]] = None) -> SyntheticScene:
+    """One mesh of the parts; `textures` replaces the default look of the parts it names."""
     meshes, ids = [], []
     for name, pieces in parts.items():
         for piece in pieces:
@@ -395,9 +416,8 @@ def _assemble(parts: dict[str, list[trimesh.Trimesh]], bound: np.ndarray, seed: 
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     mesh.face_attributes["part"] = part_ids
     rng = np.random.default_rng([seed, 0x5EED])
-    textures = {
-        name: replace(tex, noise_offset=tuple(rng.uniform(-50.0, 50.0, 3))) for name, tex in _TEXTURES.items()
-    }
+    looks = {**_TEXTURES, **(textures or {})}
+    textures = {name: replace(tex, noise_offset=tuple(rng.uniform(-50.0, 50.0, 3))) for name, tex in looks.items()}
     return SyntheticScene(mesh, part_ids, bound, textures, ValueNoise.from_seed(seed), seed)
 
 

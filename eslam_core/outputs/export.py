@@ -10,10 +10,11 @@ import trimesh
 from eslam_core.outputs.culling import visible_mask
 from eslam_core.evaluation.trajectory import Trajectory, write_tum
 from eslam_core.mapping.scene_map import surface_points
-from eslam_core.outputs.atomic import atomic_output
+from eslam_core.outputs.atomic import atomic_output, write_atomic
 from eslam_core.outputs.mesh import MeshSettings, extract_mesh
 from eslam_core.outputs.map_file import CheckpointError, read_checkpoint
 from eslam_core.slam import CHECKPOINT_VERSION, SLAM
+from eslam_core.tracking.information import PoseCovariance
 
 
 def save_checkpoint(slam: SLAM, path: Path) -> Path:
@@ -70,12 +71,41 @@ def save_trajectory(trajectory: Trajectory, path: Path) -> Path:
 
 
 def write_trajectories(slam: SLAM, out_dir: Path) -> Path:
-    """trajectory.txt (returned) and, where the frames had one, groundtruth.txt."""
+    """trajectory.txt (returned), pose_quality.csv and, where the frames had one, groundtruth.txt."""
     path = save_trajectory(estimated_trajectory(slam), out_dir / "trajectory.txt")
+    write_atomic(out_dir / "pose_quality.csv", tracking_table(slam.trajectory))
     gt = ground_truth_trajectory(slam)
     if gt is not None:
         save_trajectory(gt, out_dir / "groundtruth.txt")
     return path
+
+
+AXES = ("x", "y", "z", "roll", "pitch", "yaw")
+UPPER = np.triu_indices(6)
+
+
+def tracking_table(trajectory) -> str:
+    """How far each frame's pose can be trusted, one line per frame: its quality, whether it was lost or degraded,
+    its covariance's largest position (m) and rotation (deg) standard deviations and the covariance itself (upper
+    triangle, REP 103 order, m and rad; empty where not measured)."""
+    pairs = [f"cov_{AXES[i]}_{AXES[j]}" for i, j in zip(*UPPER)]
+    lines = [",".join(["timestamp", "quality", "lost", "degraded", "sigma_m", "sigma_deg"] + pairs)]
+    for r in trajectory.records:
+        measured = [""] * (2 + len(pairs))
+        if r.covariance is not None:
+            c = PoseCovariance(r.covariance)
+            measured = [f"{c.sigma_m:.5f}", f"{c.sigma_deg:.3f}"] + [f"{v:.4g}" for v in r.covariance[UPPER]]
+        lines.append(",".join([f"{r.timestamp:.6f}", f"{r.quality:.3f}", str(int(r.lost)), str(int(r.degraded))]
+                              + measured))
+    return "\n".join(lines) + "\n"
+
+
+def tracking_summary(trajectory) -> dict:
+    """summary.json's share of pose_quality.csv."""
+    records = trajectory.records
+    sigmas = [PoseCovariance(r.covariance).sigma_m for r in records if r.covariance is not None]
+    return {"frames_lost": int(records.column("lost").sum()), "frames_degraded": int(records.column("degraded").sum()),
+            "sigma_m_median": float(np.median(sigmas)) if sigmas else None}
 
 
 def observed_bound(slam: SLAM, margin: float) -> np.ndarray:

@@ -56,6 +56,8 @@ class PoseUpdate:
     latency_s: float  # frame arrival (submit) -> pose available
     quality: float = 1.0  # of the tracked pose, in [0, 1] (tracking/quality.py)
     lost: bool = False  # the camera is lost: the pose is a guess (not mapped; a publisher should say so)
+    degraded: bool = False  # the view leaves the pose free in some direction (not mapped; tracking/quality.py)
+    covariance: Optional[np.ndarray] = None  # (6, 6) x y z roll pitch yaw, world frame; None: not measured
 
 
 @dataclass

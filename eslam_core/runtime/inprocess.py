@@ -259,7 +259,8 @@ class InProcessRuntime(SavingMixin):
                         self._mirror.append(record, res.anchor)
                         self._mirror.refine(res.refined)
                         self._updates.append(PoseUpdate(res.index, frame.timestamp, res.pose, res.tracking_loss,
-                                                        res.keyframe, done - arrival, res.quality, res.lost))
+                                                        res.keyframe, done - arrival, res.quality, res.lost,
+                                                        res.degraded, res.covariance))
                         self._tracking_rate.tick(done)
                         self._latency.add(done - arrival)
                         if res.keyframe:

@@ -392,7 +392,7 @@ class MultiProcessRuntime(SavingMixin):
             self._last_quality = (r.quality, r.lost)
             # The tracker's newest frame has no next keyframe to blend with: its pose is the pose as tracked.
             self._updates.append(PoseUpdate(r.index, r.timestamp, r.tracked, r.tracking_loss, msg.keyframe,
-                                            msg.latency_s, r.quality, r.lost))
+                                            msg.latency_s, r.quality, r.lost, r.degraded, r.covariance))
             self._tracking_rate.tick(msg.done)
             self._latency.add(msg.latency_s)
         elif isinstance(msg, MappingReport):

@@ -565,7 +565,8 @@ class TrackerWorker:
             # (as in the lock-step SLAM: localization refines nothing, each frame is its own anchor)
             keyframe = tracked.keyframe or self.cfg.run.mode == "localization"
             record = self.trajectory.record(pf.index, pf.timestamp, tracked.pose.double().numpy(), tracked.loss,
-                                            pf.gt_pose, keyframe, tracked.quality.value, tracked.lost)
+                                            pf.gt_pose, keyframe, tracked.quality.value, tracked.lost,
+                                            tracked.quality.degraded, tracked.covariance_matrix)
         self._report(record, keyframe, item.arrival, start)
         if tracked is not None and tracked.keyframe:  # after the pose is out: it need not wait for the keyframe
             with board.timed(Counter.TRACK_KEYFRAME_S):

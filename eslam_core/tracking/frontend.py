@@ -37,6 +37,7 @@ from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.map_frame import squared_first_pose
 from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.representation.field import SceneField
+from eslam_core.tracking.information import PoseCovariance
 from eslam_core.tracking.odometry import FrameOdometry
 from eslam_core.tracking.quality import (RESIDUAL_WINDOW, Quality, TrackingEvidence, is_lost, tracking_quality,
                                          typical_loss)
@@ -48,6 +49,10 @@ log = logging.getLogger("eslam")
 MAX_EXTRAPOLATION = 4.0  # frame gaps the constant-velocity prediction extrapolates over
 MAX_UNINDEXED = 2  # new keyframes waiting for relocalization features (see TrackingFrontEnd.remember)
 DEAD_RECKONED_QUALITY = 0.5  # of a pose from the odometry alone (dead_reckon): trusted less than a tracked one
+# Degraded frames in a row after which each frame is first matched against the keyframes, as a lost one is: the pose
+# may have slid along the free direction, and a tracker back on a constrained view from a pose tens of centimetres
+# off can settle there with every point on the map (the generated corridor, 36 cm off).
+RECHECK_AFTER = 5
 
 
 # A view with less of its depth in mapped space than this has left the map: against a map that lags the keyframes,
@@ -79,6 +84,11 @@ class TrackedPose:
     quality: Quality
     lost: bool  # the camera is lost after this frame (its pose is not to be trusted, nor mapped)
     relocalized_from: Optional[int] = None  # the keyframe whose match gave this frame's starting pose
+    covariance: Optional[PoseCovariance] = None  # of the pose (information.py); None where nothing measured it
+
+    @property
+    def covariance_matrix(self) -> Optional[np.ndarray]:
+        return None if self.covariance is None else self.covariance.matrix
 
 
 class TrackingFrontEnd:
@@ -91,6 +101,7 @@ class TrackingFrontEnd:
         self.good: list[int] = []  # trajectory positions of the last well-tracked frames (the prediction's)
         self.recent_losses: deque = deque(maxlen=RESIDUAL_WINDOW)  # well-tracked frames' (the residual's)
         self.since_keyframe = 0
+        self.degraded_run = 0  # degraded frames in a row (quality.py)
         self.unindexed: list = []  # keyframes not in `places` yet (see remember)
         self._loaded_unindexed = False
         self.fallback_pose = np.eye(4)
@@ -174,11 +185,21 @@ class TrackingFrontEnd:
         self.last_odom = pf.odom_pose
 
     def predict(self, pf: PreparedFrame, trajectory: TrackedTrajectory, odometry_frame=None
-                ) -> tuple[np.ndarray, float]:
-        """The predicted pose (from the last well-tracked frames only) and the time since the last of them in
-        units of the usual frame gap. `odometry_frame`: this frame prepared for the frame-to-frame odometry."""
+                ) -> tuple[np.ndarray, float, Optional[np.ndarray]]:
+        """The predicted pose (from the last well-tracked frames only), the time since the last of them in
+        units of the usual frame gap, and the pose to keep along the directions the frame does not constrain
+        where that is not the prediction (else None). `odometry_frame`: this frame prepared for the frame-to-frame
+        odometry.
+
+        The odometry sees what the tracker sees: where the view leaves a direction free (a wall, a corridor) its
+        motion along it is a guess too, and on the synthetic degenerate views it returned motions 3-25 cm off
+        along it, frame after frame, while the camera crept 0.2 cm. A constant velocity is no better there: one
+        such motion becomes the velocity, and the corridor's pose ran off by 13 cm a frame. Along what the frame
+        does not constrain the tracker keeps the last pose (information.py): the error grows no faster than the
+        camera moves, and the frame says it is degraded. External odometry does not see the view: its pose is
+        kept as it is."""
         if len(trajectory) == 0:
-            return self.fallback_pose, 1.0
+            return self.fallback_pose, 1.0, None
         last = self.good[-1] if self.good else len(trajectory) - 1
         prev = trajectory.pose(last)
         gap = 1.0
@@ -187,19 +208,21 @@ class TrackingFrontEnd:
             gap = time_ratio(a, b, pf.timestamp, limit=1e9)
         if pf.odom_pose is not None and self.last_odom is not None:
             if self.cfg.tracking.mode == "external":
-                return self.map_from_odom @ pf.odom_pose, gap
-            return prev @ np.linalg.inv(self.last_odom) @ pf.odom_pose, gap
-        if odometry_frame is not None and self.odometry.reference_key == last:
-            motion = self.odometry.motion(odometry_frame)
-            if motion is not None:
-                return prev @ motion, gap
+                return self.map_from_odom @ pf.odom_pose, gap, None
+            return prev @ np.linalg.inv(self.last_odom) @ pf.odom_pose, gap, None
         # After a long pause (over MAX_EXTRAPOLATION frame gaps) the velocity says nothing: predict no motion. A
         # camera lost for a few frames keeps the velocity of its last tracked ones: they are the frames before the
         # loss, and a camera that walked on while lost (2.5 cm a frame on the synthetic long room) was otherwise
         # refined from where it was last tracked, 10 cm behind, and on a wall that lets the pose slide, found there.
+        # (After a degraded frame the odometry is not asked: on the view that left the pose free its motions were
+        # off by 3-25 cm frame after frame, and one of them is the start along the directions the tracker holds.)
+        if odometry_frame is not None and self.odometry.reference_key == last and not self.degraded_run:
+            motion = self.odometry.motion(odometry_frame)
+            if motion is not None:
+                return prev @ motion, gap, prev
         if len(self.good) < 2 or not self.cfg.tracking.constant_velocity or gap > MAX_EXTRAPOLATION:
-            return prev, gap
-        return constant_velocity(trajectory.pose(self.good[-2]), prev, gap), gap
+            return prev, gap, None
+        return constant_velocity(trajectory.pose(self.good[-2]), prev, gap), gap, None
 
     def track(self, pf: PreparedFrame, view: MapView, trajectory: TrackedTrajectory,
               catch_up: Optional[Callable[[], bool]] = None) -> TrackedPose:
@@ -207,24 +230,26 @@ class TrackingFrontEnd:
         offline), brings the view up to every keyframe made so far and says whether it changed; it is called when
         the view has left the mapped space, and the frame is then tracked again on the newer map."""
         odometry_frame = self.odometry.frame(pf.rgb, pf.depth) if self.odometry is not None else None
-        predicted, gap = self.predict(pf, trajectory, odometry_frame)
+        predicted, gap, model = self.predict(pf, trajectory, odometry_frame)
         init = torch.from_numpy(orthonormalize(predicted)).float()
+        free_prior = None if model is None else torch.from_numpy(orthonormalize(model)).float()
         if self.tracker is None:  # external mode: the odometry's pose, mapping only
             self._note_odometry(pf, init.double().numpy())
             return self._decided(len(trajectory), init, init, 0.0, Quality(1.0, "ok", False), None)
         found = None
-        while self.lost and self.index_next():
+        recheck = self.lost or self.degraded_run >= RECHECK_AFTER
+        while recheck and self.index_next():
             pass
-        if self.lost and self.places is not None and len(self.places):
+        if recheck and self.places is not None and len(self.places):
             found = self.places.relocalize(rgb_uint8(pf.rgb).numpy(), pf.depth.numpy(), self.intr)
             if found is not None:
-                init = torch.from_numpy(orthonormalize(found.pose)).float()
+                init, free_prior = torch.from_numpy(orthonormalize(found.pose)).float(), None
         # (The extent test uses the starting pose: a few centimetres off at most, and it saves a second pass.)
         result = self.tracker.track(view.field, pf, init, view.extent, view.observed, view.newest_keyframe(),
-                                    view.version)
+                                    view.version, free_prior)
         if catch_up is not None and left_the_map(result) and catch_up():
             result = self.tracker.track(view.field, pf, init, view.extent, view.observed, view.newest_keyframe(),
-                                        view.version)
+                                        view.version, free_prior)
         pose = result.pose
         if not torch.isfinite(pose).all():  # a diverged optimisation must not poison the trajectory and the map
             log.warning("frame %d: tracking diverged (non-finite pose); keeping the motion model's prediction",
@@ -234,10 +259,12 @@ class TrackingFrontEnd:
         evidence = TrackingEvidence(result.depth_fraction, result.inlier_fraction, result.observed_fraction,
                                     result.loss, (torch.linalg.inv(init.double()) @ pose.double()).numpy(),
                                     typical_loss(self.recent_losses), 1.0 if found is not None else gap, self.lost,
-                                    found is not None or self._prior_holds(pf))
+                                    found is not None or self._prior_holds(pf), result.covariance)
         quality = tracking_quality(evidence, self.cfg.quality)
-        return self._decided(len(trajectory), pose, init, result.loss, quality,
-                             None if found is None else found.keyframe_id, pf, odometry_frame)
+        tracked = self._decided(len(trajectory), pose, init, result.loss, quality,
+                                None if found is None else found.keyframe_id, pf, odometry_frame)
+        tracked.covariance = result.covariance
+        return tracked
 
     def dead_reckon(self, pf: PreparedFrame, trajectory: TrackedTrajectory) -> Optional[TrackedPose]:
         """A frame that came before there is a map to track against (a live camera streams from its first frame
@@ -282,6 +309,7 @@ class TrackingFrontEnd:
                      f", relocalized against keyframe {relocalized_from}" if relocalized_from is not None else "",
                      quality.value)
         keyframe = False
+        self.degraded_run = self.degraded_run + 1 if quality.degraded else 0
         if not self.lost:
             self.good = (self.good + [position])[-2:]
             if math.isfinite(loss):
@@ -291,7 +319,9 @@ class TrackingFrontEnd:
             if odometry_frame is not None:
                 self.odometry.set_reference(position, odometry_frame)
             self.since_keyframe += 1
-            keyframe = self.since_keyframe >= self.cfg.mapping.every and self.cfg.run.mode == "slam"
+            # A degraded pose may have slid along the free direction: mapping it would put the slide into the map.
+            keyframe = self.since_keyframe >= self.cfg.mapping.every and self.cfg.run.mode == "slam" and \
+                not quality.degraded
             if keyframe:
                 self.since_keyframe = 0
         return TrackedPose(pose, init, loss, keyframe, quality, self.lost, relocalized_from)

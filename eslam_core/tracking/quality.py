@@ -18,6 +18,11 @@ A tracked frame gives these pieces of evidence, each turned into a score in [0, 
 - start (only while lost): whether the tracker started from a pose worth refining: a relocalization match, the
   odometry, or a pose tracked in this run. From where a loaded map ended it settles on whatever surface is near,
   which on 7-Scenes restarts were poses 1-4 m off with a quarter to half of their points fitting the map.
+- constraint: the pose covariance (information.py). A view that leaves a direction free (a wall, two planes, a
+  corridor) gives a pose that may be fine or may have slid along it, and nothing in the residuals tells which:
+  where the covariance's largest position or rotation axis exceeds `degraded_sigma_m` / `degraded_sigma_deg`, the
+  frame is *degraded*: its quality is capped below `found_above`, it makes no keyframe, and the reason names the
+  free direction.
 The quality is the weakest score (one bad piece of evidence is enough to distrust a pose), and the reason names it.
 A frame is *lost* below `lost_below`; a lost camera counts as found again only at `found_above` (hysteresis, so
 that a marginal frame does not flip the state back and forth).
@@ -32,6 +37,7 @@ import numpy as np
 
 from eslam_core.config import QualityConfig
 from eslam_core.geometry import rotation_angle_deg
+from eslam_core.tracking.information import PoseCovariance
 
 
 @dataclass(frozen=True)
@@ -47,6 +53,7 @@ class TrackingEvidence:
     gap_ratio: float = 1.0  # the time since the previous frame in units of the usual frame gap (prediction's)
     lost_before: bool = False  # the camera was lost at the previous frame: the pose must show it is in the map
     anchored: bool = True  # while lost: the tracker started from a relocalization, the odometry or a tracked pose
+    covariance: Optional[PoseCovariance] = None  # of the returned pose (None: not measured)
 
 
 @dataclass(frozen=True)
@@ -54,6 +61,7 @@ class Quality:
     value: float  # in [0, 1]
     reason: str  # what limits it ("ok" when nothing does)
     lost: bool  # value < lost_below
+    degraded: bool = False  # the view leaves the pose free in some direction (see the module docstring)
 
 
 def ramp(x: float, zero_at: float, one_at: float) -> float:
@@ -98,8 +106,23 @@ def tracking_quality(e: TrackingEvidence, cfg: Optional[QualityConfig] = None) -
                             f"pose: not found yet")
     name = min(scores, key=lambda k: scores[k][0])
     value, why = scores[name]
+    degraded = e.covariance is not None and not value < cfg.lost_below and (
+        e.covariance.sigma_m > cfg.degraded_sigma_m or e.covariance.sigma_deg > cfg.degraded_sigma_deg)
+    if degraded:
+        value, why = min(value, DEGRADED_QUALITY), degenerate_view(e.covariance)
     lost = value < cfg.lost_below
-    return Quality(value, why if value < cfg.found_above else "ok", lost)
+    return Quality(value, why if value < cfg.found_above else "ok", lost, degraded)
+
+
+# The quality of a degraded pose: above `lost_below` (it is the best estimate there is, and the next frame's
+# prediction) and below `found_above` (a lost camera is not found on a view that cannot place it).
+DEGRADED_QUALITY = 0.6
+
+
+def degenerate_view(covariance: PoseCovariance) -> str:
+    x, y, z = covariance.weak_direction
+    return (f"degenerate view: the pose is free along ({x:+.2f}, {y:+.2f}, {z:+.2f}) (sigma "
+            f"{100 * covariance.sigma_m:.1f} cm, {covariance.sigma_deg:.1f} deg)")
 
 
 def _observed_note(observed: float) -> str:

@@ -25,6 +25,7 @@ from eslam_core.mapping.extent import outside_mask
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.rendering.losses import eslam_losses
 from eslam_core.mapping.observed import ObservedSurfaces
+from eslam_core.tracking.information import PoseCovariance
 from eslam_core.rendering.volume import render_rays
 
 
@@ -42,6 +43,7 @@ class TrackingResult:
     # Depth points inside the border that the map can score at the starting pose (in its extent and, for the SDF
     # tracker, in observed space) / depth points inside the border: low when the view has left the mapped space.
     mapped_fraction: float = float("nan")
+    covariance: PoseCovariance | None = None  # of the pose (information.py); None where not measured
 
 
 def draw_in_extent(candidates: torch.Tensor, n: int, world_points, extent: np.ndarray | None
@@ -105,11 +107,12 @@ class Tracker:
     @denormals_flushed()  # see cpu.py
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
               extent: np.ndarray | None = None, observed: ObservedSurfaces | None = None,
-              keyframe: Keyframe | None = None, map_version: int | None = None) -> TrackingResult:
+              keyframe: Keyframe | None = None, map_version: int | None = None,
+              free_prior: torch.Tensor | None = None) -> TrackingResult:
         """Rays are drawn from pixels whose depth point lies in `extent` (the map's) at the starting pose, from a
         pool of 8 x `tracking.rays` of them; `observed` restricts the rays with `tracking.observed_only`
-        (otherwise, as in the paper and the official code, any pixel with depth may be drawn); `keyframe` is not
-        used; `map_version` changes whenever the field's values do (None: unknown). Inputs and the result are host
+        (otherwise, as in the paper and the official code, any pixel with depth may be drawn); `keyframe` and
+        `free_prior` are not used (Adam has no normal equations to tell the directions the frame constrains); `map_version` changes whenever the field's values do (None: unknown). Inputs and the result are host
         tensors; the work runs on the field's device."""
         tc = self.cfg.tracking
         device = field.device

@@ -12,8 +12,9 @@ The SDF alone leaves directions in which the visible surfaces slide along themse
 a grazing angle) and the constant-velocity prediction's error survives, frame after frame; the colour terms hold
 them, the keyframe's sharp images better than the map's blurred colour. All residuals are functions of x, so with a
 left perturbation x -> x + w x x + v the Jacobian row of a residual with spatial gradient g is [g, x cross g].
-Damped Gauss-Newton steps with Huber weights solve for (v, w): one SDF query (with gradients) per point and
-iteration instead of rendering ~40 samples per ray.
+Gauss-Newton steps with Huber weights solve for (v, w) in the directions the frame constrains (information.py): one
+SDF query (with gradients) per point and iteration instead of rendering ~40 samples per ray. Along a direction the
+frame leaves free (a wall, a corridor) the pose keeps its start, or `free_prior` where one is given.
 
 Only points inside the truncation band (where the SDF has a gradient and the colour is the surface's) give map
 residuals. The cost that picks the best pose counts every point, a saturated one at the largest penalty; otherwise a
@@ -36,10 +37,11 @@ from eslam_core.config import Config
 from eslam_core.cpu import denormals_flushed, flat_nonzero, one_thread
 from eslam_core.representation.field import FoldedMap, FrozenField, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
-from eslam_core.geometry import depth_points_world, so3_exp
+from eslam_core.geometry import depth_points_world, matrix_to_rotvec, so3_exp
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.native import load_kernel, pointer
+from eslam_core.tracking.information import constrained_step, pose_covariance, unconstrained_part
 from eslam_core.tracking.photometric import Reference, grey_pyramid, photometric_residuals, sample, to_grey
 from eslam_core.tracking.render_tracker import TrackingResult, draw_in_extent
 
@@ -94,10 +96,11 @@ def normal_equations(x: torch.Tensor, r: torch.Tensor, grad: torch.Tensor, w: to
     return Jw.T @ J, Jw.T @ torch.where(used, r, 0.0)
 
 
-def gauss_newton_step(H: torch.Tensor, b: torch.Tensor, damping: float) -> torch.Tensor:
-    """(v, w) minimising sum w_i (r_i + J_i [v; w])^2 + damping |.|^2 given its normal equations H, b."""
-    H = H + damping * torch.diag(torch.diagonal(H).clamp_min(1e-9))
-    return -torch.linalg.solve(H, b)
+def pose_change(R: torch.Tensor, t: torch.Tensor, target: torch.Tensor) -> np.ndarray:
+    """(v, w) of the left perturbation that takes the pose (R, t) to `target` (4x4): target = exp(w) (R, t) + v."""
+    target = target.double().cpu().numpy()
+    dR = target[:3, :3] @ R.cpu().numpy().T
+    return np.concatenate([target[:3, 3] - dR @ t.cpu().numpy(), matrix_to_rotvec(dR)])
 
 
 def pyramid_level(iteration: int, iterations: int, levels: int) -> int:
@@ -138,11 +141,14 @@ class SDFTracker:
     @denormals_flushed()
     def track(self, field: SceneField, frame: PreparedFrame, init_pose: torch.Tensor,
               extent: np.ndarray | None = None, observed: ObservedSurfaces | None = None,
-              keyframe: Keyframe | None = None, map_version: int | None = None) -> TrackingResult:
+              keyframe: Keyframe | None = None, map_version: int | None = None,
+              free_prior: torch.Tensor | None = None) -> TrackingResult:
         """Align the frame's depth points inside `extent` (the map's, at the starting pose) to the map (SDF and,
         with `color_weight`, the map's colour) and, with `photometric_weight`, to the images of `keyframe`
         (normally the newest keyframe). `map_version`: changes whenever the field's values do (None: unknown).
-        Inputs and the result are host tensors; the work runs on the field's device."""
+        `free_prior`: the pose to keep along the directions the frame does not constrain (information.py), where
+        that is not `init_pose` (None: keep the start's). Inputs and the result are host tensors; the work runs on
+        the field's device."""
         tc, T = self.cfg.tracking, self.cfg.model.truncation
         device = field.device
         self._on(device)
@@ -155,6 +161,7 @@ class SDFTracker:
         if len(pix) < 50 or tc.iterations == 0:
             return TrackingResult(init_pose.clone(), float("nan"), len(pix), depth_fraction, mapped_fraction=inside)
         p_cam = (self.dirs_cam[pix] * depth[pix, None]).double()
+        median_depth = float(p_cam[:, 2].median())  # (the scale of a turn: information.py)
         lam = tc.color_weight
         grey_pixel = to_grey(image.reshape(-1, 3)[pix]) if lam > 0 else None
         ref = self.reference(keyframe, device)
@@ -165,6 +172,7 @@ class SDFTracker:
         R, t = start[:3, :3].double(), start[:3, 3].double()
         used = photo_used = seen = None  # the points scored, fixed at the initial pose so that costs compare
         best_cost, best_Rt, inliers = float("inf"), None, 0.0
+        normal, at_best = None, None  # the last normal equations (H, chi2, residuals), and those at the best pose
         fixed = self._folded.of(field, map_version)  # the map does not change while tracking
         for it in range(tc.iterations + 1):  # the last pass only scores the final pose
             x = p_cam @ R.T + t
@@ -194,34 +202,55 @@ class SDFTracker:
                     r_ph = r_ph / tc.photometric_huber
                     photo_cost = torch.where(ok, huber_cost(r_ph), SATURATED_COST)
                     cost += tc.photometric_weight * float(photo_cost[photo_used].mean())
-            if scored and cost < best_cost:
+            better = scored and cost < best_cost
+            if better:
                 best_cost, inliers = cost, float(band.sum()) / max(float(used.sum()), 1.0)
-                best_Rt = R, t
+                best_Rt, at_best = (R, t), normal  # (the final pass has none of its own: the last step's)
             if last or band.sum() < 30:
                 break
             # Points outside a term's mask take part with weight 0 (cheaper than gathering the others).
-            H, b = normal_equations(x, r_geo, sdf_grad / tc.huber, huber_weights(r_geo) * band)
+            w_geo = huber_weights(r_geo) * band
+            H, b = normal_equations(x, r_geo, sdf_grad / tc.huber, w_geo)
+            chi2, residuals = w_geo @ r_geo**2, band.sum()
             if lam > 0:
-                Hc, bc = normal_equations(x, r_col, grey_grad / tc.color_huber, lam * huber_weights(r_col) * band)
-                H, b = H + Hc, b + bc
+                w_col = lam * huber_weights(r_col) * band
+                Hc, bc = normal_equations(x, r_col, grey_grad / tc.color_huber, w_col)
+                H, b, chi2, residuals = H + Hc, b + bc, chi2 + w_col @ r_col**2, residuals + band.sum()
             if ref is not None and photo_used.any():
                 if level > 0:
                     r_ph, g_ph, ok = photometric_residuals(x, grey_current[level], ref, level, self.intr, T)
                     r_ph = r_ph / tc.photometric_huber
-                Hp, bp = normal_equations(x, r_ph, g_ph / tc.photometric_huber,
-                                          tc.photometric_weight * huber_weights(r_ph) * (ok & photo_used))
+                w_ph = tc.photometric_weight * huber_weights(r_ph) * (ok & photo_used)
+                Hp, bp = normal_equations(x, r_ph, g_ph / tc.photometric_huber, w_ph)
                 H, b = H + Hp, b + bp
-            delta = gauss_newton_step(H, b, damping=1e-4)
+                chi2, residuals = chi2 + w_ph.double() @ r_ph**2, residuals + (w_ph > 0).sum()
+            normal = (H.cpu().numpy(), float(chi2), int(residuals))
+            if better:
+                at_best = normal
+            if it == 0 and free_prior is not None:
+                shift = unconstrained_part(normal[0], normal[2], t.cpu().numpy(), median_depth,
+                                           pose_change(R, t, free_prior))
+                if np.abs(shift).max() > 1e-9:  # the start moves: the pose scored here is not a candidate
+                    dR = so3_exp(torch.from_numpy(shift[3:]).to(device))
+                    R, t = dR @ R, dR @ t + torch.from_numpy(shift[:3]).to(device)
+                    best_cost, best_Rt, at_best = float("inf"), None, None
+                    continue
+            delta = torch.from_numpy(constrained_step(normal[0], b.cpu().numpy(), normal[2], t.cpu().numpy(),
+                                                     median_depth)).to(device)
             if not torch.isfinite(delta).all():
                 break
             dR = so3_exp(delta[3:])
             R, t = dR @ R, dR @ t + delta[:3]
             if delta.norm() < 1e-6:
                 break
-        best = init_pose.clone()
+        best, covariance = init_pose.clone(), None
         if best_Rt is not None:
             best = torch.eye(4)
             best[:3, :3], best[:3, 3] = best_Rt[0].float().cpu(), best_Rt[1].float().cpu()
+            at_best = at_best or normal
+            if at_best is not None:
+                covariance = pose_covariance(*at_best, best[:3, 3].double().numpy(), median_depth)
         observed_fraction = float(seen.float().mean()) if seen is not None else float("nan")
         mapped = inside * (observed_fraction if seen is not None else 1.0)
-        return TrackingResult(best, best_cost, len(pix), depth_fraction, inliers, observed_fraction, mapped)
+        return TrackingResult(best, best_cost, len(pix), depth_fraction, inliers, observed_fraction, mapped,
+                              covariance)
