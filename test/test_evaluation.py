@@ -436,6 +436,31 @@ def test_evaluate_run_trajectory_only_and_markdown(tmp_path):
     json.loads(write_report_json(report, run / "report.json").read_text())
 
 
+def test_evaluate_run_compares_the_errors_with_the_predicted_sigma(tmp_path):
+    """pose_quality.csv's covariance against the errors: 2 cm noise per axis (3.5 cm per position) predicted by a
+    sigma of 3.5 cm gives a median ratio near 1 (0.9: the median of a chi distribution with 3 degrees of freedom
+    over its RMS); a tenfold overconfident covariance gives ten times that."""
+    from eslam_core.outputs.export import tracking_table
+    from eslam_core.trajectory import TrackedTrajectory
+
+    gt = smooth_trajectory(120)
+    noisy = gt.poses.copy()
+    noisy[:, :3, 3] += np.random.default_rng(0).normal(0, 0.02, (len(gt), 3))
+    for scale, expected in ((1.0, 0.9), (0.1, 9.0)):
+        run = make_run(tmp_path / f"run{scale}", gt, Trajectory(gt.timestamps, noisy))
+        records = TrackedTrajectory()
+        for k, t in enumerate(gt.timestamps):
+            records.record(k, t, noisy[k], 0.1, None, k == 0, 1.0, False, k == 5,
+                           np.diag([(0.02 * scale) ** 2] * 3 + [1e-6] * 3))
+        (run / "pose_quality.csv").write_text(tracking_table(records))
+        report = evaluate_run(run, depth_views=0, consistency_frames=0)
+        covariance = report["trajectory"]["covariance"]
+        assert covariance["frames_degraded"] == 1 and covariance["frames_lost"] == 0
+        assert covariance["error_over_sigma_median"] == pytest.approx(expected, rel=0.15)
+        assert "| error / predicted sigma, median |" in render_markdown(report)
+        assert _is_png(run / report["plots"]["position_error"])
+
+
 def test_evaluate_run_culls_both_meshes_and_scores_reconstruction(tmp_path, monkeypatch):
     scene = room()
     traj = room_trajectory()

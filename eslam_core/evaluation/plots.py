@@ -51,13 +51,18 @@ def plot_trajectory(
     return _save(figure, path)
 
 
-def plot_position_error(timestamps: np.ndarray, errors: np.ndarray, path: PathLike) -> Path:
-    """Position error (cm) of each matched pose over time, with its RMSE as a reference line."""
+def plot_position_error(timestamps: np.ndarray, errors: np.ndarray, path: PathLike,
+                        sigma: Optional[np.ndarray] = None) -> Path:
+    """Position error (cm) of each matched pose over time, with its RMSE as a reference line and, where given, the
+    predicted standard deviation of each pose (the tracker's covariance)."""
     timestamps = np.asarray(timestamps, dtype=np.float64)
     errors_cm = 100.0 * np.asarray(errors, dtype=np.float64)
     figure = Figure(figsize=(9, 3.5))
     ax = figure.add_subplot(1, 1, 1)
     ax.plot(timestamps - timestamps[0], errors_cm, color="tab:red", linewidth=1.0, label="position error")
+    if sigma is not None:
+        ax.plot(timestamps - timestamps[0], 100.0 * np.asarray(sigma, dtype=np.float64), color="tab:blue",
+                linewidth=1.0, label="predicted sigma")
     rmse = float(np.sqrt(np.mean(errors_cm**2)))
     ax.axhline(rmse, color="black", linestyle="--", linewidth=0.8, label=f"RMSE {rmse:.2f} cm")
     ax.set_xlabel("time since first frame [s or frames]")

@@ -62,6 +62,7 @@ class RunFiles:
     groundtruth: Optional[Path]
     mesh: Optional[Path]
     config: Optional[Path]
+    pose_quality: Optional[Path] = None  # per frame: quality, lost, degraded, covariance (outputs/export.py)
 
 
 def read_run(run_dir: PathLike) -> RunFiles:
@@ -86,8 +87,38 @@ def read_run(run_dir: PathLike) -> RunFiles:
         return path if path.is_file() else None
 
     return RunFiles(
-        run_dir, summary, trajectory, optional("groundtruth.txt"), optional("mesh.ply"), optional("config.yaml")
+        run_dir, summary, trajectory, optional("groundtruth.txt"), optional("mesh.ply"), optional("config.yaml"),
+        optional("pose_quality.csv"),
     )
+
+
+def read_pose_quality(path: Path) -> dict[str, np.ndarray]:
+    """pose_quality.csv's columns by name (NaN where a frame has no covariance)."""
+    lines = path.read_text().splitlines()
+    if not lines or not lines[0].startswith("timestamp,"):
+        raise RunDirectoryError(f"{path} has no 'timestamp,...' header: not a pose_quality.csv of `eslam run`")
+    names = lines[0].split(",")
+    rows = [[float(v) if v else np.nan for v in line.split(",")] for line in lines[1:] if line]
+    table = np.array(rows, dtype=np.float64).reshape(len(rows), len(names))
+    return {name: table[:, i] for i, name in enumerate(names)}
+
+
+def _covariance_section(quality: dict[str, np.ndarray], result) -> tuple[dict, np.ndarray]:
+    """How the predicted position sigma (sqrt of the covariance's position trace) compares with the errors against
+    the ground truth, and each matched pose's sigma (NaN where not measured)."""
+    sigma = np.sqrt(quality["cov_x_x"] + quality["cov_y_y"] + quality["cov_z_z"])
+    matched = associate(quality["timestamp"], result.timestamps, 0.02)
+    per_pose = np.full(len(result.errors), np.nan)
+    per_pose[matched[:, 1]] = sigma[matched[:, 0]]
+    ratio = result.errors / per_pose
+    ratio = ratio[np.isfinite(ratio)]
+    return {
+        "frames_degraded": int(np.nansum(quality["degraded"])),
+        "frames_lost": int(np.nansum(quality["lost"])),
+        "sigma_median_cm": float(100 * np.nanmedian(sigma)) if np.isfinite(sigma).any() else None,
+        "error_over_sigma_median": float(np.median(ratio)) if len(ratio) else None,
+        "within_2_sigma_percent": float(100 * np.mean(ratio <= 2.0)) if len(ratio) else None,
+    }, per_pose
 
 
 def _read_config(path: Optional[Path]) -> Optional[dict]:
@@ -375,8 +406,12 @@ def evaluate_run(
         report["skipped"].append("trajectory metrics: no groundtruth.txt in the run (the data set has no poses)")
     else:
         report["trajectory"], ate_result = _trajectory_section(estimate, read_tum(run.groundtruth))
+        sigma = None
+        if run.pose_quality is not None:
+            report["trajectory"]["covariance"], sigma = _covariance_section(read_pose_quality(run.pose_quality),
+                                                                            ate_result)
         if options.plots:
-            report["plots"].update(_trajectory_plots(ate_result, run.run_dir))
+            report["plots"].update(_trajectory_plots(ate_result, run.run_dir, sigma))
     report["seconds"]["trajectory"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
@@ -412,13 +447,14 @@ def evaluate_run(
     return _json_ready(report)
 
 
-def _trajectory_plots(result, run_dir: Path) -> dict[str, str]:
+def _trajectory_plots(result, run_dir: Path, sigma: Optional[np.ndarray] = None) -> dict[str, str]:
     from eslam_core.evaluation import plots as figures  # matplotlib is imported only when plots are wanted
 
     title = f"ATE RMSE {100 * result.rmse:.2f} cm"
     trajectory = figures.plot_trajectory(result.gt_positions, result.aligned_positions,
                                          run_dir / "plots" / "trajectory.png", title=title)
-    error = figures.plot_position_error(result.timestamps, result.errors, run_dir / "plots" / "position_error.png")
+    error = figures.plot_position_error(result.timestamps, result.errors, run_dir / "plots" / "position_error.png",
+                                        sigma)
     return {"trajectory": _relative(trajectory, run_dir), "position_error": _relative(error, run_dir)}
 
 
@@ -570,6 +606,12 @@ def render_markdown(report: dict) -> str:
             if rpe_values:
                 rows.append([f"RPE {label}: translation RMSE", _number(rpe_values["trans_rmse_cm"], 3, "cm")])
                 rows.append([f"RPE {label}: rotation RMSE", _number(rpe_values["rot_rmse_deg"], 3, "deg")])
+        covariance = trajectory.get("covariance")
+        if covariance:
+            rows.append(["frames degraded / lost", f"{covariance['frames_degraded']} / {covariance['frames_lost']}"])
+            rows.append(["predicted position sigma, median", _number(covariance["sigma_median_cm"], unit="cm")])
+            rows.append(["error / predicted sigma, median", _number(covariance["error_over_sigma_median"])])
+            rows.append(["errors within 2 sigma", _number(covariance["within_2_sigma_percent"], 1, "%")])
         lines += _table(rows, ["metric", "value"])
         lines += ["", f"Alignment: {trajectory['alignment']}.", ""]
     else:
