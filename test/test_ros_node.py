@@ -495,6 +495,10 @@ def test_end_to_end_bag_replay_through_the_node(room_sequence, node_process, tmp
         np.testing.assert_allclose(got, stamps, atol=1e-6)  # stamped with the input stamps, in order
         assert {p.header.frame_id for p in listener.poses} == {"map"}
         assert listener.odoms[-1].child_frame_id == "camera_color_optical_frame"
+        # tracked poses carry the tracker's own covariance: symmetric, positive, and coupled across axes
+        covariance = np.reshape(listener.odoms[-1].pose.covariance, (6, 6))
+        np.testing.assert_allclose(covariance, covariance.T, atol=1e-12)
+        assert np.linalg.eigvalsh(covariance).min() > 0 and np.abs(covariance[0, 1:]).max() > 0
         path = listener.paths[-1]
         assert path.header.frame_id == "map"
         np.testing.assert_allclose([stamp_to_sec(p.header.stamp) for p in path.poses], stamps, atol=1e-6)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from builtin_interfaces.msg import Time
 from nav_msgs.msg import Odometry
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
@@ -258,6 +259,27 @@ def test_status_level_warns_about_silent_inputs_and_a_low_rate():
     assert status_level(StatusInputs(failed="crashed", state="failed"), 5.0, 0.0) == (ERROR, "crashed")
     assert status_level(StatusInputs(state="inactive", silent_s={"rgb/image": 99.0}), 5.0, 0.0)[0] == OK
 
+    level, message = status_level(StatusInputs(**running, degraded="degenerate view: the pose is free along "
+                                               "(+1.00, +0.00, +0.00) (sigma 10.0 cm, 0.3 deg)"), 5.0, 0.0)
+    assert level == WARN and message.startswith("tracking degraded (degenerate view: the pose is free along (+1.00")
+    assert status_level(StatusInputs(**running, lost="quality 0.00", degraded="x"), 5.0, 0.0)[1].startswith(
+        "tracking lost")  # lost says more than degraded
+
+
+def test_odom_carries_the_trackers_covariance_moved_to_the_base():
+    from eslam_core.tracking.information import covariance_at
+    from eslam_ros.slam_node import LOST_VARIANCE, odometry
+
+    camera = np.diag([1e-4, 4e-4, 9e-4, 1e-6, 1e-6, 1e-6])
+    twist = (np.zeros(3), np.zeros(3))
+    msg = odometry(np.eye(4), twist, Time(), "map", "camera", 0.6, False, camera)
+    np.testing.assert_allclose(np.reshape(msg.pose.covariance, (6, 6)), camera)  # REP 103 order as measured
+    lost = odometry(np.eye(4), twist, Time(), "map", "camera", 0.0, True, camera)
+    assert np.reshape(lost.pose.covariance, (6, 6))[0, 0] == LOST_VARIANCE  # a lost pose is unknown whatever it says
+    # the base 1 m in front of the camera: a turn about z of 1 mrad moves it 1 mm along y
+    base = covariance_at(camera, np.array([1.0, 0.0, 0.0]))
+    assert base[1, 1] == pytest.approx(4e-4 + 1e-6) and base[0, 0] == pytest.approx(1e-4)
+    assert base[1, 5] == pytest.approx(1e-6)  # position along y and yaw now move together
 
 # ================================================================================================= launch file
 
