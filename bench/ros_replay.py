@@ -56,6 +56,7 @@ class Listener:
     def __init__(self):
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Odometry
         from rclpy.node import Node
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import Image
@@ -65,10 +66,12 @@ class Listener:
         self.node = Node("eslam_replay_bench")
         self.images: dict[float, float] = {}
         self.poses: dict[float, tuple[float, np.ndarray]] = {}
+        self.sigmas: dict[float, float] = {}  # ~/odom's largest position sigma (m) by stamp
         self.status: dict[str, str] = {}
         self._stamp, self._pose = stamp_to_sec, msg_to_pose
         self.node.create_subscription(Image, TOPICS.rgb, self._on_image, qos_profile_sensor_data)
         self.node.create_subscription(PoseStamped, "/slam_node/pose", self._on_pose, 1000)
+        self.node.create_subscription(Odometry, "/slam_node/odom", self._on_odom, 1000)
         self.node.create_subscription(DiagnosticArray, "/slam_node/status", self._on_status, 10)
 
     def _on_image(self, msg) -> None:
@@ -76,6 +79,10 @@ class Listener:
 
     def _on_pose(self, msg) -> None:
         self.poses[round(self._stamp(msg.header.stamp), 6)] = (time.monotonic(), self._pose(msg.pose))
+
+    def _on_odom(self, msg) -> None:
+        position = np.reshape(msg.pose.covariance, (6, 6))[:3, :3]
+        self.sigmas[round(self._stamp(msg.header.stamp), 6)] = float(np.sqrt(np.linalg.eigvalsh(position)[-1]))
 
     def _on_status(self, msg) -> None:
         self.status = {kv.key: kv.value for kv in msg.status[0].values}
@@ -240,10 +247,19 @@ def main() -> int:
     ate_cm = None
     if args.trajectory is not None and stamps:
         write_tum(args.trajectory, Trajectory(np.array(stamps), np.stack([listener.poses[s][1] for s in stamps])))
+    flagged = None
     if len(known) >= 3:
         est = Trajectory(np.array([s for s, _ in known]), np.stack([listener.poses[s][1] for s, _ in known]))
         ref = Trajectory(est.timestamps, np.stack([p for _, p in known]))
-        ate_cm = 100 * ate(est, ref).rmse
+        result = ate(est, ref)
+        ate_cm = 100 * result.rmse
+        # Published poses off by more than 2 cm (after the ATE alignment) and how many of them said so: ~/odom's
+        # covariance wider than quality.degraded_sigma_m (a degraded pose) or unknown (lost).
+        off = result.errors > 0.02
+        sigma = np.array([listener.sigmas.get(s, np.inf) for s in est.timestamps])
+        flagged = {"published_over_2cm": int(off.sum()), "of_which_flagged": int((off & (sigma > 0.02)).sum()),
+                   "worst_unflagged_cm": float(100 * result.errors[off & ~(sigma > 0.02)].max())
+                   if (off & ~(sigma > 0.02)).any() else None}
     results = {
         "data": str(Path(args.data).resolve()), "frames": len(ds), "rate": args.rate, "preset": args.preset,
         "workers": args.workers, "policy": args.policy, "params": args.param, "node_exit_code": node.returncode,
@@ -257,7 +273,7 @@ def main() -> int:
                        "p99": float(np.percentile(latency, 99) * 1000),
                        "max": float(latency.max() * 1000), "mean": float(latency.mean() * 1000)}
         if len(latency) else None,
-        "ate_rmse_cm_of_published_poses": ate_cm, "cpu_percent_during_play": cpu_share, "node_status": status, "load_before": load_before,
+        "ate_rmse_cm_of_published_poses": ate_cm, "poses_over_2cm": flagged, "cpu_percent_during_play": cpu_share, "node_status": status, "load_before": load_before,
         "node_log": str(log_path),
     }
     print(f"\n{len(ds)} frames at {30 * args.rate:.0f} Hz through slam_node (preset {args.preset}, "
@@ -271,6 +287,8 @@ def main() -> int:
               f"max {lat['max']:.0f} ms")
     if ate_cm is not None:
         print(f"ATE RMSE of the published (as-tracked) poses: {ate_cm:.2f} cm over {len(known)} poses")
+        print(f"published poses over 2 cm off: {flagged['published_over_2cm']}, of which ~/odom said so (sigma over "
+              f"2 cm or lost): {flagged['of_which_flagged']}")
     print("CPU during the stream (% of one core): " + ", ".join(f"{name} {share:.0f}"
                                                                for name, share in cpu_share.items()))
     print_profile(status)
