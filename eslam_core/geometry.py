@@ -96,14 +96,19 @@ def depth_points_world(dirs_cam: torch.Tensor, depth: torch.Tensor, c2w: torch.T
     return dirs_cam * depth[:, None] @ c2w[:3, :3].T + c2w[:3, 3]
 
 
+def skew(v) -> np.ndarray:
+    """[v]x (numpy): skew(v) @ a = v x a."""
+    x, y, z = np.asarray(v, dtype=np.float64)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
 def rotvec_to_matrix(rotvec) -> np.ndarray:
     """Rodrigues' formula (numpy): the rotation matrix of a rotation vector (axis * angle in radians)."""
     rotvec = np.asarray(rotvec, dtype=np.float64)
     angle = float(np.linalg.norm(rotvec))
     if angle < 1e-12:
         return np.eye(3)
-    k = rotvec / angle
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    K = skew(rotvec / angle)
     return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
 
 

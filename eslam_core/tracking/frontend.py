@@ -210,16 +210,16 @@ class TrackingFrontEnd:
             if self.cfg.tracking.mode == "external":
                 return self.map_from_odom @ pf.odom_pose, gap, None
             return prev @ np.linalg.inv(self.last_odom) @ pf.odom_pose, gap, None
-        # After a long pause (over MAX_EXTRAPOLATION frame gaps) the velocity says nothing: predict no motion. A
-        # camera lost for a few frames keeps the velocity of its last tracked ones: they are the frames before the
-        # loss, and a camera that walked on while lost (2.5 cm a frame on the synthetic long room) was otherwise
-        # refined from where it was last tracked, 10 cm behind, and on a wall that lets the pose slide, found there.
-        # (After a degraded frame the odometry is not asked: on the view that left the pose free its motions were
-        # off by 3-25 cm frame after frame, and one of them is the start along the directions the tracker holds.)
+        # After a degraded frame the odometry is not asked: on the view that left the pose free its motions were
+        # off by 3-25 cm frame after frame, and one of them is the start along the directions the tracker holds.
         if odometry_frame is not None and self.odometry.reference_key == last and not self.degraded_run:
             motion = self.odometry.motion(odometry_frame)
             if motion is not None:
                 return prev @ motion, gap, prev
+        # After a long pause (over MAX_EXTRAPOLATION frame gaps) the velocity says nothing: predict no motion. A
+        # camera lost for a few frames keeps the velocity of its last tracked ones: they are the frames before the
+        # loss, and a camera that walked on while lost (2.5 cm a frame on the synthetic long room) was otherwise
+        # refined from where it was last tracked, 10 cm behind, and on a wall that lets the pose slide, found there.
         if len(self.good) < 2 or not self.cfg.tracking.constant_velocity or gap > MAX_EXTRAPOLATION:
             return prev, gap, None
         return constant_velocity(trajectory.pose(self.good[-2]), prev, gap), gap, None

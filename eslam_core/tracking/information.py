@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from eslam_core.geometry import skew
+
 # Independent points a frame's alignment is worth: set so that the position errors of tracked frames against the
 # truth are the size of the predicted standard deviations. `fast`, lock-step, median of error / sqrt(trace of the
 # position covariance): 0.36 on 120 frames of the synthetic room, 0.40 on ICL office kt0 (300), 2.57 on 7-Scenes
@@ -40,12 +42,6 @@ UNCONSTRAINED_BELOW = 40.0
 # One frame's plausible motion (standard deviation, metres; a turn as the motion of a point at the median depth):
 # the prior that bounds a direction nothing constrains.
 PRIOR_SIGMA_M = 0.10
-
-
-def skew(t: np.ndarray) -> np.ndarray:
-    """[t]x: skew(t) @ a = t x a."""
-    x, y, z = t
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
 @dataclass(frozen=True)
@@ -70,12 +66,17 @@ class PoseCovariance:
         return float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(self.matrix[3:, 3:])[-1], 0.0))))
 
 
+def _turn_scale(depth: float) -> np.ndarray:
+    """D with (v_c, w) = D s: s counts a turn w as the motion d w of a point at the median depth d."""
+    return np.diag([1.0, 1.0, 1.0] + [1.0 / max(depth, 1e-3)] * 3)
+
+
 def _to_solver(t: np.ndarray, depth: float) -> np.ndarray:
     """T with (v, w) = T s: s = (v_c, d w) are the pose change in metres of point motion, the turn w about the
     camera centre t (v_c = v + w x t, the camera's own move) and counted at the median depth d."""
     T = np.eye(6)
-    T[:3, 3:] = skew(np.asarray(t, dtype=np.float64))  # v = v_c - w x t = v_c + [t]x w
-    return T @ np.diag([1.0, 1.0, 1.0] + [1.0 / max(depth, 1e-3)] * 3)
+    T[:3, 3:] = skew(t)  # v = v_c - w x t = v_c + [t]x w
+    return T @ _turn_scale(depth)
 
 
 def constrained_directions(H: np.ndarray, n: int, t: np.ndarray, depth: float
@@ -115,7 +116,7 @@ def pose_covariance(H: np.ndarray, chi2: float, n: int, t: np.ndarray, depth: fl
     variances = np.where(constrained, 1.0 / (information * EFFECTIVE_POINTS / s2 + PRIOR_SIGMA_M**-2),
                          PRIOR_SIGMA_M**2)
     # (v_c, w) = D s: the camera's move and its turn, which is what REP 103's pose covariance is of.
-    D = np.diag([1.0, 1.0, 1.0] + [1.0 / max(depth, 1e-3)] * 3)
+    D = _turn_scale(depth)
     covariance = D @ (vectors * variances) @ vectors.T @ D
     return PoseCovariance(0.5 * (covariance + covariance.T))
 
@@ -125,5 +126,5 @@ def covariance_at(covariance: np.ndarray, lever: np.ndarray) -> np.ndarray:
     `lever` (world vector from the camera to it, e.g. the robot's base): its position also moves with the turn,
     by w x lever."""
     A = np.eye(6)
-    A[:3, 3:] = -skew(np.asarray(lever, dtype=np.float64))
+    A[:3, 3:] = -skew(lever)
     return A @ np.asarray(covariance, dtype=np.float64) @ A.T
