@@ -47,6 +47,26 @@ def frame_pose(records: Sequence[FrameRecord], keyframe_records: dict[int, int],
     return interpolate_pose(own, with_next, t)
 
 
+def thinned(n: int, max_poses: Optional[int]) -> np.ndarray:
+    """Positions of n records to show at most `max_poses` of them (None: all): every s-th and the newest, s the
+    smallest power of two that fits, so that a position shown stays shown until s doubles (a path published
+    again and again over hours of frames then costs the same every time, and changes little between two)."""
+    if max_poses is None or n <= max_poses:
+        return np.arange(n)
+    stride = 1 << int(np.ceil(np.log2(n / max(max_poses - 1, 1))))
+    picked = np.arange(0, n, stride)
+    return picked if picked[-1] == n - 1 else np.append(picked, n - 1)
+
+
+def _grown(a: np.ndarray, n: int) -> np.ndarray:
+    """`a` with room for at least n rows along its first axis: doubled, so appending one at a time is O(1) each."""
+    if len(a) >= n:
+        return a
+    out = np.zeros((max(2 * len(a), n, 256),) + a.shape[1:], a.dtype)
+    out[:len(a)] = a
+    return out
+
+
 class _Columns:
     """The records of a trajectory as growable arrays: 575 bytes a frame (three 4x4 poses, a 6x6 float32
     covariance, seven scalars), about 800 with the trajectory's cached pose and keyframe poses, where FrameRecords
@@ -64,11 +84,8 @@ class _Columns:
         self.arrays.update({name: np.zeros(capacity, dtype) for name, dtype in self.SCALARS.items()})
 
     def append(self, r: FrameRecord) -> None:
-        if self.n == len(self.arrays["index"]):  # double (the new half stays unwritten, so not resident, until used)
-            grown = {name: np.empty((max(2 * self.n, 256),) + a.shape[1:], a.dtype) for name, a in self.arrays.items()}
-            for name, a in grown.items():
-                a[:self.n] = self.arrays[name][:self.n]
-            self.arrays = grown
+        # (np.zeros: the new half is not resident until written)
+        self.arrays = {name: _grown(a, self.n + 1) for name, a in self.arrays.items()}
         k, a = self.n, self.arrays
         a["relative"][k], a["tracked"][k] = r.relative, r.tracked
         a["gt_pose"][k] = np.nan if r.gt_pose is None else r.gt_pose
@@ -115,10 +132,10 @@ class TrackedTrajectory:
         self.records = _Columns()  # records[k] is frame k's FrameRecord (made on access)
         self.keyframe_records: dict[int, int] = {}  # keyframe number -> its own record
         self.keyframe_poses: dict[int, np.ndarray] = {}  # keyframe number -> pose as mapping refined it
-        # poses() of earlier calls, per record, and the keyframes whose frames moved since: the node asks for every
-        # pose every second, and recomputing them all took 0.7 s after 20 minutes at 30 Hz.
+        # poses() of earlier calls, per record, and the keyframes whose frames moved since: the node asks for the
+        # path every second, and recomputing every pose took 0.7 s after 20 minutes at 30 Hz.
         self._cache = np.zeros((0, 4, 4))
-        self._cached = np.zeros(0, bool)
+        self._cached = np.zeros(0, bool)  # (rows past len(self.records) are room to grow)
         self._moved: set[int] = set()
 
     def __len__(self) -> int:
@@ -144,14 +161,18 @@ class TrackedTrajectory:
         if keyframe:
             self.keyframe_poses.setdefault(record.reference, np.asarray(record.tracked, dtype=np.float64))
             self.keyframe_records[record.reference] = len(self.records)
-            self._moved.add(record.reference - 1)  # the previous keyframe's frames now blend into this one
+            self._mark_moved(record.reference - 1)  # the previous keyframe's frames now blend into this one
         self.records.append(record)
 
     def refine(self, poses: dict) -> None:
         """Keyframe number -> refined 4x4 pose (numpy or torch)."""
         for i, pose in poses.items():
             self.keyframe_poses[int(i)] = np.asarray(pose, dtype=np.float64)
-            self._moved.update((int(i), int(i) - 1))  # its own frames, and those blending into it
+            self._mark_moved(int(i), int(i) - 1)  # its own frames, and those blending into it
+
+    def _mark_moved(self, *keyframes: int) -> None:
+        if len(self._cache):  # (nothing is cached before the first poses(): a tracker never asks, and never grows it)
+            self._moved.update(keyframes)
 
     def keyframe_pose(self, i: int) -> np.ndarray:
         return self.keyframe_poses[i]
@@ -159,22 +180,22 @@ class TrackedTrajectory:
     def pose(self, k: int) -> np.ndarray:
         return frame_pose(self.records, self.keyframe_records, self.keyframe_pose, k)
 
-    def poses(self) -> np.ndarray:
-        """Every frame's pose (N, 4, 4); only those whose keyframes moved since the last call are computed."""
-        n, have = len(self.records), len(self._cached)
-        if n > have:
-            self._cache = np.concatenate([self._cache, np.zeros((n - have, 4, 4))])
-            self._cached = np.concatenate([self._cached, np.zeros(n - have, bool)])
+    def poses(self, max_poses: Optional[int] = None) -> np.ndarray:
+        """The frames' poses (N, 4, 4), or those of `thinned(N, max_poses)`; only those whose keyframes moved
+        since they were last asked for are computed."""
+        n = len(self.records)
+        self._cache, self._cached = _grown(self._cache, n), _grown(self._cached, n)
         if self._moved:
-            self._cached &= ~np.isin(self.records.column("reference"), list(self._moved))
+            self._cached[:n] &= ~np.isin(self.records.column("reference"), list(self._moved))
             self._moved.clear()
-        for k in np.flatnonzero(~self._cached):
+        picked = thinned(n, max_poses)
+        for k in picked[~self._cached[picked]]:
             self._cache[k] = self.pose(int(k))
-        self._cached[:] = True
-        return self._cache.copy()
+        self._cached[picked] = True
+        return self._cache[picked]
 
-    def timestamps(self) -> np.ndarray:
-        return self.records.column("timestamp").copy()
+    def timestamps(self, max_poses: Optional[int] = None) -> np.ndarray:
+        return self.records.column("timestamp")[thinned(len(self.records), max_poses)]
 
     def gt_poses(self) -> list:
         return [r.gt_pose for r in self.records]

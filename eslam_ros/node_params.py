@@ -100,6 +100,8 @@ class NodeSettings:
     mesh_nice: int = _param(19, "mesh_nice", "nice value (0-19) of the mesh process: 19 = Linux's SCHED_IDLE, only CPU "
                                              "time that no other process wants")
     path_period: float = _param(1.0, "path_period", "seconds between ~/path publications")
+    path_max_poses: int = _param(4096, "path_max_poses", "most poses in ~/path: a long run's path shows every 2nd, "
+                                                         "4th, ... frame and the newest (its cost stays flat)")
     status_period: float = _param(1.0, "status_period", "seconds between ~/status publications")
     publish_tf: bool = _param(True, "publish_tf", "broadcast on /tf (camera mode: map_frame -> camera frame; REP 105 "
                                                   "mode: map_frame -> odom_frame) when tf2_ros or tf2_msgs can be "
@@ -179,6 +181,7 @@ class NodeSettings:
             value = getattr(self, attribute)
             check(math.isfinite(value) and value > 0, attribute, "must be a positive number of seconds")
         check(self.mesh_triangle_budget >= 1, "mesh_triangle_budget", "must be >= 1")
+        check(self.path_max_poses >= 2, "path_max_poses", "must be >= 2 (the first and the newest pose)")
         check(math.isfinite(self.mesh_block_size) and self.mesh_block_size > 0, "mesh_block_size",
               "must be a positive number of metres")
         check(math.isfinite(self.mesh_time_budget) and self.mesh_time_budget > 0, "mesh_time_budget",

@@ -923,7 +923,7 @@ class SlamNode(Node):
     def _publish_path(self) -> None:
         if self.runtime is None or self.failed:
             return
-        timestamps, poses = self.runtime.trajectory()
+        timestamps, poses = self.runtime.trajectory(self.settings.path_max_poses)
         finite = np.isfinite(poses).all(axis=(1, 2)) if len(timestamps) else np.zeros(0, bool)
         if finite.any() and self.settings.pose_frame == "base":
             base_camera = self.odometry.base_camera(self._camera_frame)

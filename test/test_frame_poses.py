@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
 from eslam_core.geometry import interpolate_pose, rotation_angle_deg, rotvec_to_matrix
-from eslam_core.trajectory import TrackedTrajectory
+from eslam_core.trajectory import TrackedTrajectory, thinned
 
 
 def pose(x: float, yaw_deg: float = 0.0) -> np.ndarray:
@@ -74,12 +74,31 @@ def test_poses_are_recomputed_only_where_keyframes_moved_and_equal_frame_pose():
         if k % 5 == 0:
             cached = traj.poses()
             np.testing.assert_array_equal(cached, np.stack([traj.pose(i) for i in range(len(traj))]))
+        if k % 3 == 1:  # a thinned path (the node's) leaves the other frames uncached, and still equals frame_pose
+            picked = thinned(len(traj), 8)
+            np.testing.assert_array_equal(traj.poses(8), np.stack([traj.pose(int(i)) for i in picked]))
+            np.testing.assert_array_equal(traj.timestamps(8), traj.timestamps()[picked])
     before = traj.poses()
     traj.refine({3: noisy(12)})
     after = traj.poses()
     moved = np.flatnonzero(np.abs(after - before).max(axis=(1, 2)) > 0)
     assert set(traj.records[k].reference for k in moved) == {2, 3}  # keyframe 3's frames, and those blending into it
     np.testing.assert_array_equal(after, np.stack([traj.pose(i) for i in range(len(traj))]))
+
+
+def test_a_thinned_path_is_bounded_spread_and_stable():
+    """At most max_poses, the first and the newest frame always, every s-th frame between; a frame shown stays
+    shown as the run grows until the stride doubles."""
+    assert list(thinned(5, None)) == list(thinned(5, 10)) == [0, 1, 2, 3, 4]
+    previous = None
+    for n in range(11, 3000, 7):
+        picked = thinned(n, 100)
+        assert min(n, 50) <= len(picked) <= 100 and picked[0] == 0 and picked[-1] == n - 1
+        stride = picked[1] - picked[0]
+        assert (np.diff(picked[:-1]) == stride).all() and stride & (stride - 1) == 0  # a power of two
+        if previous is not None and previous[1] == stride:  # same stride: the earlier frames shown stay shown
+            assert set(previous[0][:-1]) <= set(picked)
+        previous = (picked, stride)
 
 
 def test_a_frame_costs_under_850_bytes_and_survives_a_checkpoint():

@@ -567,6 +567,9 @@ def test_rate_meter_follows_recent_events():
     assert meter.rate(now=2.0) == pytest.approx(2.0)
     assert meter.rate(now=4.0) == pytest.approx(1.0)  # no event for 2 s: the rate decays
     assert meter.rate(now=30.0) == 0.0  # nothing in the window
+    for t in np.arange(100.0, 1100.0, 0.1):  # events for 1000 s, the rate never asked: only the window's kept
+        meter.tick(t)
+    assert len(meter.times) <= 101 and meter.rate(now=1100.0) == pytest.approx(10.0, rel=0.02)
 
 
 def test_trajectory_mirror_applies_refinements_in_any_order():

@@ -106,7 +106,9 @@ class SLAMRuntime(Protocol):
         """The poses tracked since the last call, oldest first; waits up to `timeout` seconds when there is none
         yet (a publisher thread that sends each pose as soon as it is made)."""
 
-    def trajectory(self) -> tuple[np.ndarray, np.ndarray]: ...
+    def trajectory(self, max_poses: Optional[int] = None) -> tuple[np.ndarray, np.ndarray]:
+        """Time stamps (N,) and poses (N, 4, 4) of the tracked frames, refined keyframe poses written back; with
+        `max_poses`, at most that many (`trajectory.thinned`: evenly spread, the newest frame always)."""
 
     def health(self) -> Health: ...
 
@@ -168,13 +170,17 @@ class RateMeter:
 
     def tick(self, t: float) -> None:
         self.times.append(t)
+        self._forget(t)  # (a caller that never asks for the rate must not keep every event of the run)
+
+    def _forget(self, now: float) -> None:
+        while self.times and self.times[0] < now - self.window_s:
+            self.times.popleft()
 
     def rate(self, now: Optional[float] = None) -> float:
         """Intervals between the recent events over the time since the oldest of them: the event rate while events
         come, decaying towards 0 when they stop."""
         now = time.monotonic() if now is None else now
-        while self.times and self.times[0] < now - self.window_s:
-            self.times.popleft()
+        self._forget(now)
         if len(self.times) < 2:
             return 0.0
         return (len(self.times) - 1) / max(now - self.times[0], 1e-6)

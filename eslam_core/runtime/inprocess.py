@@ -127,11 +127,11 @@ class InProcessRuntime(SavingMixin):
             out, self._updates = self._updates, []
         return out
 
-    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+    def trajectory(self, max_poses: Optional[int] = None) -> tuple[np.ndarray, np.ndarray]:
         if self._closed:
-            return self.slam.trajectory.timestamps(), self.slam.trajectory.poses()
+            return self.slam.trajectory.timestamps(max_poses), self.slam.trajectory.poses(max_poses)
         with self._lock:
-            return self._mirror.timestamps(), self._mirror.poses()
+            return self._mirror.timestamps(max_poses), self._mirror.poses(max_poses)
 
     def health(self) -> Health:
         with self._cond:

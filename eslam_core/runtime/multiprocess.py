@@ -449,14 +449,14 @@ class MultiProcessRuntime(SavingMixin):
             out, self._updates = self._updates, []
         return out
 
-    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+    def trajectory(self, max_poses: Optional[int] = None) -> tuple[np.ndarray, np.ndarray]:
         if self._final is not None:
-            return self._final.trajectory.timestamps(), self._final.trajectory.poses()
+            return self._final.trajectory.timestamps(max_poses), self._final.trajectory.poses(max_poses)
         if self._started and not self._closed:
             self._raise_if_crashed()
             self._pump()
         with self._lock:
-            return self._mirror.timestamps(), self._mirror.poses()
+            return self._mirror.timestamps(max_poses), self._mirror.poses(max_poses)
 
     def health(self) -> Health:
         if self._last_health is not None:
