@@ -68,43 +68,43 @@ def _grown(a: np.ndarray, n: int) -> np.ndarray:
 
 
 class _Columns:
-    """The records of a trajectory as growable arrays: 575 bytes a frame (three 4x4 poses, a 6x6 float32
-    covariance, seven scalars), about 800 with the trajectory's cached pose and keyframe poses, where FrameRecords
-    holding three 4x4 arrays each took 1.2 KB, in the tracking process and again in the caller's (80 MB over 20
-    minutes at 30 Hz)."""
+    """The records of a trajectory as growable arrays. Poses are kept in float32: a tracked pose comes from float32
+    tensors, and a relative pose rounded to float32 moves a frame by under a micrometre at 10 m. About 390 bytes a
+    frame (three 4x4 poses, a 6x6 covariance, seven scalars), where FrameRecords holding three float64 4x4 arrays
+    took 1.2 KB. `essential`: only what tracking reads back (the time stamp, the keyframe and the two poses: 150
+    bytes), as the tracking process keeps it; its records go whole to the caller's copy."""
 
     POSES = ("relative", "tracked", "gt_pose")
     SCALARS = {"index": np.int64, "timestamp": np.float64, "reference": np.int64, "tracking_loss": np.float64,
                "quality": np.float64, "lost": np.bool_, "degraded": np.bool_}
+    ESSENTIAL = ("index", "timestamp", "reference", "relative", "tracked")
+    NOT_MEASURED = {"gt_pose": np.nan, "covariance": np.nan, "tracking_loss": np.nan, "quality": 1.0, "lost": False,
+                    "degraded": False}  # (what a column not kept, or not in an older checkpoint, reads as)
 
-    def __init__(self, capacity: int = 256):
+    def __init__(self, capacity: int = 256, essential: bool = False):
         self.n = 0
-        self.arrays = {name: np.zeros((capacity, 4, 4)) for name in self.POSES}
+        self.arrays = {name: np.zeros((capacity, 4, 4), np.float32) for name in self.POSES}
         self.arrays["covariance"] = np.zeros((capacity, 6, 6), np.float32)
         self.arrays.update({name: np.zeros(capacity, dtype) for name, dtype in self.SCALARS.items()})
+        if essential:
+            self.arrays = {name: self.arrays[name] for name in self.ESSENTIAL}
 
     def append(self, r: FrameRecord) -> None:
         # (np.zeros: the new half is not resident until written)
         self.arrays = {name: _grown(a, self.n + 1) for name, a in self.arrays.items()}
         k, a = self.n, self.arrays
-        a["relative"][k], a["tracked"][k] = r.relative, r.tracked
-        a["gt_pose"][k] = np.nan if r.gt_pose is None else r.gt_pose
-        a["covariance"][k] = np.nan if r.covariance is None else r.covariance
-        for name in self.SCALARS:
-            a[name][k] = getattr(r, name)
+        for name, column in a.items():
+            value = getattr(r, name)
+            column[k] = self.NOT_MEASURED[name] if value is None else value
         self.n += 1
 
-    @staticmethod
-    def of(columns: dict) -> "_Columns":
-        """Records from whole columns (a checkpoint's; those of a map saved before a column existed are filled
-        with 'not measured')."""
-        out = _Columns(0)
+    def of(self, columns: dict) -> "_Columns":
+        """Records of this kind from whole columns (a checkpoint's)."""
         n = len(columns["index"])
-        missing = {"covariance": np.nan, "degraded": False}
-        out.arrays = {name: np.array(columns[name], dtype=a.dtype) if name in columns else
-                      np.full((n,) + a.shape[1:], missing[name], a.dtype) for name, a in out.arrays.items()}
-        out.n = n
-        return out
+        self.arrays = {name: np.array(columns[name], dtype=a.dtype) if name in columns else
+                       np.full((n,) + a.shape[1:], self.NOT_MEASURED[name], a.dtype) for name, a in self.arrays.items()}
+        self.n = n
+        return self
 
     def column(self, name: str) -> np.ndarray:
         return self.arrays[name][:self.n]
@@ -114,11 +114,17 @@ class _Columns:
             raise IndexError(f"record {k} of {self.n}")
         k %= self.n
         a = self.arrays
-        gt, covariance = a["gt_pose"][k], a["covariance"][k]
-        return FrameRecord(int(a["index"][k]), float(a["timestamp"][k]), int(a["reference"][k]), a["relative"][k],
-                           float(a["tracking_loss"][k]), None if np.isnan(gt[0, 0]) else gt, a["tracked"][k],
-                           float(a["quality"][k]), bool(a["lost"][k]), bool(a["degraded"][k]),
-                           None if np.isnan(covariance[0, 0]) else covariance.astype(np.float64))
+        value = {name: a[name][k] if name in a else self.NOT_MEASURED[name] for name in
+                 self.NOT_MEASURED.keys() | self.ESSENTIAL}
+
+        def matrix(name: str) -> Optional[np.ndarray]:
+            m = np.asarray(value[name], np.float64)
+            return None if np.isnan(m.flat[0]) else m
+
+        return FrameRecord(int(value["index"]), float(value["timestamp"]), int(value["reference"]),
+                           matrix("relative"), float(value["tracking_loss"]), matrix("gt_pose"), matrix("tracked"),
+                           float(value["quality"]), bool(value["lost"]), bool(value["degraded"]),
+                           matrix("covariance"))
 
     def __len__(self) -> int:
         return self.n
@@ -128,8 +134,9 @@ class _Columns:
 
 
 class TrackedTrajectory:
-    def __init__(self):
-        self.records = _Columns()  # records[k] is frame k's FrameRecord (made on access)
+    def __init__(self, essential: bool = False):
+        """`essential`: keep only what tracking reads back of each record (see _Columns)."""
+        self.records = _Columns(essential=essential)  # records[k] is frame k's FrameRecord (made on access)
         self.keyframe_records: dict[int, int] = {}  # keyframe number -> its own record
         self.keyframe_poses: dict[int, np.ndarray] = {}  # keyframe number -> pose as mapping refined it
         # poses() of earlier calls, per record, and the keyframes whose frames moved since: the node asks for the
@@ -209,9 +216,9 @@ class TrackedTrajectory:
         }
 
     @staticmethod
-    def from_state_dict(state: dict) -> "TrackedTrajectory":
-        traj = TrackedTrajectory()
-        traj.records = _Columns.of({name: c.numpy() for name, c in state["records"].items()})
+    def from_state_dict(state: dict, essential: bool = False) -> "TrackedTrajectory":
+        traj = TrackedTrajectory(essential)
+        traj.records.of({name: c.numpy() for name, c in state["records"].items()})
         for k, reference in enumerate(traj.records.column("reference")):
             traj.keyframe_records.setdefault(int(reference), k)
         traj.keyframe_poses = {int(i): p.numpy() for i, p in state["keyframe_poses"].items()}

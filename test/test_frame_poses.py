@@ -101,24 +101,32 @@ def test_a_thinned_path_is_bounded_spread_and_stable():
         previous = (picked, stride)
 
 
-def test_a_frame_costs_under_850_bytes_and_survives_a_checkpoint():
-    """Hours at 30 Hz keep every frame in the tracking process and in the caller's: 1.2 KB a frame as objects with
-    three 4x4 arrays each, ~800 bytes as columns (poses, the pose covariance in float32, scalars, cached pose and
-    the keyframe poses)."""
+def test_a_frame_costs_under_650_bytes_and_survives_a_checkpoint():
+    """Hours at 30 Hz keep every frame in the caller's process (and the essentials in the tracking process): 1.2 KB a
+    frame as objects with three 4x4 arrays each, ~800 bytes as float64 columns; 600 with float32 poses (the cached
+    pose and the keyframe poses included, a keyframe every 4th frame), 250 with the tracker's essential columns."""
     import tracemalloc
 
-    traj = TrackedTrajectory()
+    def fill(traj: TrackedTrajectory, n: int) -> float:
+        tracemalloc.start()
+        before = tracemalloc.get_traced_memory()[0]
+        for k in range(n):
+            traj.record(k, k / 30, pose(0.01 * k, 0.1 * k), 0.1, pose(0.01 * k, 0.0) if k % 3 else None,
+                        keyframe=k % 4 == 0, quality=0.5 + (k % 2) / 2, lost=k % 5 == 0, degraded=k % 7 == 0,
+                        covariance=np.eye(6) * k if k % 2 else None)
+        traj.poses()
+        per_frame = (tracemalloc.get_traced_memory()[0] - before) / n
+        tracemalloc.stop()
+        return per_frame
+
     n = 16384  # a whole capacity: no half-filled growth in the figure
-    tracemalloc.start()
-    before = tracemalloc.get_traced_memory()[0]
-    for k in range(n):
-        traj.record(k, k / 30, pose(0.01 * k, 0.1 * k), 0.1, pose(0.01 * k, 0.0) if k % 3 else None,
-                    keyframe=k % 4 == 0, quality=0.5 + (k % 2) / 2, lost=k % 5 == 0, degraded=k % 7 == 0,
-                    covariance=np.eye(6) * k if k % 2 else None)
-    traj.poses()
-    per_frame = (tracemalloc.get_traced_memory()[0] - before) / n
-    tracemalloc.stop()
-    assert per_frame < 850, per_frame
+    traj, essential = TrackedTrajectory(), TrackedTrajectory(essential=True)
+    full_bytes = fill(traj, n)
+    assert full_bytes < 650, full_bytes
+    essential_bytes = fill(essential, n) - 129  # (less the cache of poses(), which a tracker never asks for)
+    assert essential_bytes < 280, essential_bytes
+    np.testing.assert_allclose(essential.poses(), traj.poses(), atol=1e-6)
+    assert essential.records[5].covariance is None and traj.records[5].covariance is not None
 
     traj.refine({7: pose(0.3, 1.0)})
     again = TrackedTrajectory.from_state_dict(traj.state_dict())

@@ -419,7 +419,7 @@ class TrackerWorker:
 
     def _new_state(self) -> None:
         self.frontend = TrackingFrontEnd(self.cfg, self.intr, self.dirs_cam)
-        self.trajectory = TrackedTrajectory()
+        self.trajectory = TrackedTrajectory(essential=True)  # the caller's copy has every field
         self.replica = MapReplica(self.cfg, self.intr, self.dirs_cam)
         self.map: Optional[SharedMap] = None
         self.map_version = -1
@@ -429,7 +429,7 @@ class TrackerWorker:
             for kf in loaded.map.keyframes:
                 self.replica.add_keyframe(kf)
             self.frontend = loaded.frontend
-            self.trajectory = loaded.trajectory
+            self.trajectory = TrackedTrajectory.from_state_dict(loaded.trajectory.state_dict(), essential=True)
 
     def run(self) -> None:
         self.ch.to_parent.put(WorkerReady("tracker", os.getpid()))
