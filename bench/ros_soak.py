@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ros_replay import REPO, TOPICS, node_command, process_tree_cpu, warmed_up  # noqa: E402
-from soak import lap_order, rss_mb  # noqa: E402
+from soak import lap_order, memory_mb  # noqa: E402
 
 from eslam_core.datasets import open_dataset  # noqa: E402
 from eslam_core.evaluation.trajectory import Trajectory, ate  # noqa: E402
@@ -97,10 +97,13 @@ class Camera:
 
 
 def node_rss(root: int) -> dict[str, float]:
-    """Resident memory (MB) by process name of the node and its descendants (its runtime's workers)."""
+    """Resident memory (MB) by process name of the node and its descendants (its runtime's workers), and the
+    anonymous part (the heap, without the shared map and frame ring a process has touched) as 'name anon'."""
     out: dict[str, float] = {}
     for pid, (name, _) in process_tree_cpu(root).items():
-        out[name] = out.get(name, 0.0) + rss_mb(pid)
+        memory = memory_mb(pid)
+        out[name] = out.get(name, 0.0) + memory["rss"]
+        out[f"{name} anon"] = out.get(f"{name} anon", 0.0) + memory["anon"]
     return out
 
 

@@ -39,27 +39,35 @@ from eslam_core.runtime.shared import stage_profile  # noqa: E402
 FPS = 30.0
 
 
-def rss_mb(pid: int) -> float:
+def memory_mb(pid: int) -> dict[str, float]:
+    """Resident memory of a process (MB): in all, and its anonymous (heap) and shared-memory parts (Linux)."""
+    out = {"rss": float("nan"), "anon": float("nan"), "shmem": float("nan")}
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
+            key = {"VmRSS:": "rss", "RssAnon:": "anon", "RssShmem:": "shmem"}.get(line.split(maxsplit=1)[0])
+            if key:
+                out[key] = int(line.split()[1]) / 1024.0
     except OSError:
         pass
-    return float("nan")
+    return out
+
+
+def rss_mb(pid: int) -> float:
+    return memory_mb(pid)["rss"]
 
 
 def lap_order(n: int, lap: int) -> range:
     return range(n) if lap % 2 == 0 else range(n - 1, -1, -1)
 
 
-def interval_rows(intervals: list, latencies: list, i: int) -> dict:
+def interval_rows(intervals: list, latency: np.ndarray, i: int) -> dict:
     """Interval i's per-stage profile (ms per event over the interval: the difference of the counters at its two
     ends) and the latency of the poses of the frames played in it."""
     start = intervals[i - 1] if i > 0 else {"frames": 0, "counters": {}}
     end = intervals[i]
     delta = {name: value - start["counters"].get(name, 0.0) for name, value in end["counters"].items()}
-    lat = np.array([s for j, s in latencies if start["frames"] <= j < end["frames"]])
+    lat = latency[start["frames"]:end["frames"]]
+    lat = lat[np.isfinite(lat)]
     return {"interval": i + 1, "frames": end["frames"] - start["frames"], "poses": len(lat),
             "latency_ms_median": float(np.median(lat) * 1000) if len(lat) else float("nan"),
             "latency_ms_p90": float(np.percentile(lat, 90) * 1000) if len(lat) else float("nan"),
@@ -112,17 +120,25 @@ def main() -> int:
     rt = make_runtime(cfg, ds.intrinsics, workers=2, policy=args.policy)
     rt.start()
     pids = {"parent": os.getpid(), **rt.resources()["pids"]}
-    samples, lap_ends, truth = [], [], {}
+    samples, lap_ends = [], []
+    # Per frame played, in arrays (this process's memory is measured too): the pose as tracked, the latency (NaN:
+    # no pose), the data set's frame.
+    posed = np.zeros((total, 4, 4), np.float32)
+    latency = np.full(total, np.nan, np.float32)
+    source = np.zeros(total, np.int32)
+    truth = ds.gt_poses()
     start = last_report = time.monotonic()
 
     def report(label: str) -> dict:
         figures = rt.worker_figures()
         sample = {"t_s": time.monotonic() - start, "label": label, "tracked": rt.health().frames_tracked,
                   **{f"rss_mb_{k}": rss_mb(p) for k, p in pids.items()},
+                  "memory_mb": {k: memory_mb(p) for k, p in pids.items()},
                   "keyframes_kept": int(figures.get("keyframes_kept", 0)),
                   "map_mb": figures.get("map_bytes", 0.0) / 2**20,
                   "keyframe_mb": figures.get("keyframe_bytes", 0.0) / 2**20}
         sample["rss_mb_total"] = sum(v for k, v in sample.items() if k.startswith("rss_mb_") and math.isfinite(v))
+        # (a process's RSS counts the shared map and frame ring it has touched: the anonymous part is its own heap)
         samples.append(sample)
         print(f"{sample['t_s']:7.0f} s  {label:>8}  frames {sample['tracked']:6d}  RSS parent "
               f"{sample['rss_mb_parent']:6.0f}  tracker {sample['rss_mb_tracker']:6.0f}  mapper "
@@ -131,20 +147,17 @@ def main() -> int:
               f"{sample['keyframe_mb']:6.1f} MB", flush=True)
         return sample
 
-    tracked: dict = {}  # frame -> pose as tracked (polled as it comes)
     lap_ate: list = []
     laps_out: list = []  # per lap: frames played, tracked, ATE
-    latencies: list = []  # (frame, latency s) of every pose
     intervals: list = []  # per interval of input: the workers' counters at its end, the frames played by then
 
     def collect() -> None:
         for u in rt.poll():
-            tracked[u.index] = u.pose
-            latencies.append((u.index, u.latency_s))
+            posed[u.index], latency[u.index] = u.pose, u.latency_s
 
     def close_interval() -> None:
         intervals.append({"frames": k, "counters": rt.worker_figures()})
-        first, last = interval_rows(intervals, latencies, 0), interval_rows(intervals, latencies, len(intervals) - 1)
+        first, last = interval_rows(intervals, latency, 0), interval_rows(intervals, latency, len(intervals) - 1)
         print(f"interval {len(intervals)} (to frame {k}): {last['latency_ms_median']:.1f} ms median latency, "
               f"{last['poses']} poses of {last['frames']} frames; tracker "
               f"{last['stages'].get('tracker: front end (tracking)', float('nan')):.1f} ms a frame (interval 1: "
@@ -152,14 +165,15 @@ def main() -> int:
 
     def score_lap(lap: int) -> None:
         """The lap's ATE from the poses as tracked (printed while the soak goes on)."""
-        sel = sorted(j for j in tracked if truth[j][0] == lap and truth[j][1] is not None)
+        first = lap_ends[lap - 1] if lap else 0
+        sel = [j for j in range(first, lap_ends[lap]) if np.isfinite(latency[j]) and truth[source[j]] is not None]
         if len(sel) < 3:
             return
         t = np.array(sel, dtype=np.float64) / FPS
-        err = ate(Trajectory(t, np.stack([tracked[j] for j in sel])),
-                  Trajectory(t, np.stack([truth[j][1] for j in sel])), max_dt=1e-6).rmse
+        err = ate(Trajectory(t, posed[sel].astype(np.float64)),
+                  Trajectory(t, np.stack([truth[source[j]] for j in sel])), max_dt=1e-6).rmse
         lap_ate.append(100.0 * err)
-        played = lap_ends[lap] - (lap_ends[lap - 1] if lap else 0)
+        played = lap_ends[lap] - first
         laps_out.append({"lap": lap + 1, "played": played, "tracked": len(sel), "ate_cm": lap_ate[-1]})
         print(f"lap {lap + 1:3d}: ATE {lap_ate[-1]:.2f} cm, {len(sel)} of {played} frames tracked", flush=True)
 
@@ -173,7 +187,7 @@ def main() -> int:
             if args.policy == "live":  # as a camera delivers them
                 time.sleep(max(0.0, start + k / FPS - time.monotonic()))
             rt.submit(Frame(k, k / FPS, f.rgb, f.depth, f.pose))
-            truth[k] = (lap, f.pose)
+            source[k] = i
             k += 1
             collect()
             if time.monotonic() - last_report >= args.every:
@@ -205,7 +219,7 @@ def main() -> int:
                      final)
     growth = final["rss_mb_total"] / after_two["rss_mb_total"] - 1.0
     worst = max(lap_ate) / lap_ate[0] if lap_ate else float("nan")
-    rows = [interval_rows(intervals, latencies, i) for i in range(len(intervals))]
+    rows = [interval_rows(intervals, latency, i) for i in range(len(intervals))]
     print_intervals(rows[0], rows[-1], args.interval)
     worst_lap = min(laps_out, key=lambda r: r["tracked"] / r["played"]) if laps_out else None
     print(f"\nmemory (all processes): {after_two['rss_mb_total']:.0f} MB after lap 2 -> {final['rss_mb_total']:.0f} "
