@@ -223,10 +223,12 @@ def main() -> int:
         end_of_play = time.monotonic()
         while time.monotonic() - end_of_play < args.settle and len(listener.poses) < len(published):
             time.sleep(1.0)
-        if laps[-1]:
-            lap_rows.append(lap_row(len(lap_rows) + 1, laps[-1], listener.poses, truth))
-        if intervals[-1]:
-            rows.append(interval_row(len(rows) + 1, intervals[-1], published, listener.poses, node_rss(node.pid)))
+        for stamps in laps[len(lap_rows):]:  # those not reported yet (the last, or the last two)
+            if stamps:
+                lap_rows.append(lap_row(len(lap_rows) + 1, stamps, listener.poses, truth))
+        for stamps in intervals[len(rows):]:
+            if stamps:
+                rows.append(interval_row(len(rows) + 1, stamps, published, listener.poses, node_rss(node.pid)))
         status = dict(listener.status)
     finally:
         if node.poll() is None:
