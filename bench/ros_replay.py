@@ -50,6 +50,23 @@ def node_command(args, out_dir: Path) -> list[str]:
     return command
 
 
+def start_node(args, work: Path) -> tuple[subprocess.Popen, Path]:
+    """`slam_node` as its own process in a ROS domain of its own (discovery on this machine only), and rclpy
+    initialised in this process on that domain; the node's log goes to work/node.log."""
+    import rclpy
+
+    domain = 1 + os.getpid() % 101
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+    os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    use_shipped_fastdds_profile()  # as `eslam bag play` does: large images over shared memory
+    log_path = work / "node.log"
+    node = subprocess.Popen(node_command(args, work / "node_out"), env=env, cwd=REPO, stdout=open(log_path, "w"),
+                            stderr=subprocess.STDOUT, start_new_session=True)
+    rclpy.init(domain_id=domain)
+    return node, log_path
+
+
 class Listener:
     """Arrival times (monotonic, this process) of images and poses by stamp, and the node's last status."""
 
@@ -174,15 +191,7 @@ def main() -> int:
     lead_in = write_bag(ds.subset(0, 1), work / "lead_in.mcap", fps=30.0).path
     bag = write_bag(ds.subset(1, len(ds)), work / "replay.mcap", fps=30.0).path
 
-    domain = 1 + os.getpid() % 101
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
-    os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    use_shipped_fastdds_profile()  # as `eslam bag play` does: large images over shared memory
-    log_path = work / "node.log"
-    node = subprocess.Popen(node_command(args, work / "node_out"), env=env, cwd=REPO, stdout=open(log_path, "w"),
-                            stderr=subprocess.STDOUT, start_new_session=True)
-    rclpy.init(domain_id=domain)
+    node, log_path = start_node(args, work)
     listener = Listener()
     executor = SingleThreadedExecutor()
     executor.add_node(listener.node)

@@ -32,13 +32,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from ros_replay import REPO, TOPICS, node_command, process_tree_cpu, warmed_up  # noqa: E402
+from ros_replay import TOPICS, process_tree_cpu, start_node, warmed_up  # noqa: E402
 from soak import lap_order, memory_mb  # noqa: E402
 
 from eslam_core.datasets import open_dataset  # noqa: E402
 from eslam_core.evaluation.trajectory import Trajectory, ate  # noqa: E402
 from eslam_ros.bag import CAMERA_FRAME  # noqa: E402
-from eslam_ros.qos import use_shipped_fastdds_profile  # noqa: E402
 
 FPS = 30.0
 
@@ -157,15 +156,7 @@ def main() -> int:
     truth_of = ds.gt_poses()
     n, total = len(ds), int(args.minutes * 60 * FPS)
     work = Path(tempfile.mkdtemp(prefix="eslam_soak_"))
-    domain = 1 + os.getpid() % 101
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
-    os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    use_shipped_fastdds_profile()  # large images over shared memory, as a camera driver configured for it
-    log_path = work / "node.log"
-    node = subprocess.Popen(node_command(args, work / "node_out"), env=env, cwd=REPO, stdout=open(log_path, "w"),
-                            stderr=subprocess.STDOUT, start_new_session=True)
-    rclpy.init(domain_id=domain)
+    node, log_path = start_node(args, work)
     listener = PoseListener()
     camera = Camera(listener.node, ds)
     executor = SingleThreadedExecutor()

@@ -114,8 +114,7 @@ class _Columns:
             raise IndexError(f"record {k} of {self.n}")
         k %= self.n
         a = self.arrays
-        value = {name: a[name][k] if name in a else self.NOT_MEASURED[name] for name in
-                 self.NOT_MEASURED.keys() | self.ESSENTIAL}
+        value = {**self.NOT_MEASURED, **{name: column[k] for name, column in a.items()}}
 
         def matrix(name: str) -> Optional[np.ndarray]:
             m = np.asarray(value[name], np.float64)
