@@ -47,6 +47,8 @@ setup(
         "test": ["pytest", "rtree"],
     },
     # `slam_node` serves both installs: pip puts it on PATH, colcon (setup.cfg) in lib/eslam_ros for `ros2 run`.
+    # `eslam bag` is the ROS package's command, registered here so that the core never imports eslam_ros.
     entry_points={"console_scripts": ["eslam = eslam_core.cli:main", "slam_node = eslam_ros.slam_node:main",
-                                      "slam_lifecycle_node = eslam_ros.lifecycle_node:main"]},
+                                      "slam_lifecycle_node = eslam_ros.lifecycle_node:main"],
+                  "eslam.commands": ["bag = eslam_ros.bag:main"]},
 )

@@ -16,7 +16,7 @@ frames.
 
 Columns: ATE RMSE (rigid alignment), RPE per metre travelled (translation; needs >= 1 m of reference path), the
 depth consistency score (median |depth residual| of frame pairs warped into each other, and the share within 3 cm;
-see eslam_core/evaluation/consistency.py) of the estimated poses and of the reference poses on the same pairs,
+see eslam_core/mapping/consistency.py) of the estimated poses and of the reference poses on the same pairs,
 seconds per frame (the whole run, warm-up included, as `eslam run` reports it). Writes OUT/accuracy.md (the table)
 and OUT/accuracy.json (every figure of every run, with the command lines and the machine's load average).
 """

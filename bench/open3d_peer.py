@@ -109,7 +109,8 @@ def write_run_directory(dataset, out: Path, data: Path, frames: tuple) -> dict:
     """OUT as `eslam eval` reads a run: trajectory.txt, groundtruth.txt, summary.json."""
     import numpy as np
 
-    from eslam_core.evaluation.trajectory import Trajectory, write_tum
+    from eslam_core.datasets.tum import write_tum
+    from eslam_core.trajectory import Trajectory
 
     poses = np.load(out / "poses.npy")
     timing = json.loads((out / "open3d.json").read_text())

@@ -41,7 +41,7 @@ from eslam_core.mapping.mapper import Mapper  # noqa: E402
 from eslam_core.mapping.plane_adam import RowSparseAdam  # noqa: E402
 from eslam_core.rendering.volume import alpha_from_sdf, render_weights, sample_depths  # noqa: E402
 from eslam_core.slam import SLAM  # noqa: E402
-from eslam_core.tracking.render_tracker import make_tracker  # noqa: E402
+from eslam_core.tracking.frontend import make_tracker  # noqa: E402
 
 # The official implementation on this machine kind (2 cores, CPU), from ../shared/reference/eslam_facts.md.
 OFFICIAL = {"tracking_iteration_s": (0.27, 0.45), "mapping_iteration_s": (1.6, 2.4)}

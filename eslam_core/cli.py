@@ -1,9 +1,10 @@
-"""The `eslam` command: run, demo, mesh, eval, bag, doctor."""
+"""The `eslam` command: run, demo, mesh, eval, doctor, and the commands installed packages add (bag)."""
 from __future__ import annotations
 
 import argparse
 import logging
 import sys
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -11,7 +12,7 @@ import yaml
 
 from eslam_core.camera import Intrinsics
 from eslam_core.config import list_presets
-from eslam_core.outputs.atomic import OutputWriteError
+from eslam_core.atomic import OutputWriteError
 
 log = logging.getLogger("eslam")
 
@@ -115,15 +116,20 @@ def cmd_doctor(args) -> int:
     return 0
 
 
-def cmd_bag(args) -> int:
-    # The core holds no ROS: the bag tools (and rclpy) are imported only when this command runs.
+def extension_commands() -> dict:
+    """Commands that other installed packages add to `eslam` (entry points of the group `eslam.commands`, each a
+    `main(argv) -> int`): the ROS package adds `eslam bag`. The core names no such package: it holds no ROS."""
+    return {ep.name: ep for ep in entry_points(group="eslam.commands")}
+
+
+def cmd_extension(args) -> int:
     try:
-        from eslam_ros.bag import main as bag_main
+        command = args.extension.load()
     except ImportError as e:
-        print(f"eslam bag needs the ROS 2 Python packages ({e}); install them with: pip install -e '.[ros]'",
-              file=sys.stderr)
+        print(f"eslam {args.extension.name} could not load {args.extension.value} ({e}); install what it needs (for "
+              f"the ROS tools: pip install -e '.[ros]')", file=sys.stderr)
         return 2
-    return bag_main(args.bag_args)
+    return command(args.extension_args)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -183,12 +189,13 @@ def build_parser() -> argparse.ArgumentParser:
         add_eval_arguments(e)
         e.set_defaults(func=cmd_eval)
 
-    # `eslam bag write|play|run ...`: everything after `bag` is parsed by eslam_ros.bag (prefix_chars="\0" keeps
-    # argparse from taking `--help` or `--rate` for options of its own).
-    b = sub.add_parser("bag", help="rosbag2 tools: write a data set as a bag, play a bag, run SLAM on a bag",
-                       add_help=False, prefix_chars="\0")
-    b.add_argument("bag_args", nargs=argparse.REMAINDER)
-    b.set_defaults(func=cmd_bag)
+    # `eslam bag write|play|run ...`: everything after the command's name is parsed by the command itself
+    # (prefix_chars="\0" keeps argparse from taking `--help` or `--rate` for options of its own).
+    for name, extension in sorted(extension_commands().items()):
+        x = sub.add_parser(name, help=f"from {extension.module} (`eslam {name} --help` lists what it does)",
+                           add_help=False, prefix_chars="\0")
+        x.add_argument("extension_args", nargs=argparse.REMAINDER)
+        x.set_defaults(func=cmd_extension, extension=extension)
 
     doc = sub.add_parser("doctor", help="what this installation runs on: torch, CUDA, the device auto picks, the "
                                         "native kernels, the ROS 2 wheels")

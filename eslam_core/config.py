@@ -17,6 +17,8 @@ from typing import Any, Optional
 
 import yaml
 
+from eslam_core.atomic import write_atomic  # written whole or not at all, like every output
+
 
 class ConfigError(ValueError):
     """A configuration file is invalid; the message names the key, the file and what to do."""
@@ -581,6 +583,4 @@ def load_config(path_or_preset: str | Path, overrides: Optional[dict] = None) ->
 
 
 def save_config(config: Config, path: Path) -> None:
-    from eslam_core.outputs.atomic import write_atomic  # written whole or not at all, like every output
-
     write_atomic(path, yaml.safe_dump(config.to_dict(), sort_keys=False))

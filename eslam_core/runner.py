@@ -26,7 +26,7 @@ from eslam_core.datasets.read_ahead import ReadAhead
 from eslam_core.evaluation.trajectory import ate
 from eslam_core.outputs.export import estimated_trajectory, ground_truth_trajectory, load_checkpoint, map_mesh, save_checkpoint, \
     tracking_summary, write_trajectories
-from eslam_core.outputs.atomic import OutputsNotWritten, OutputWriteError, make_output_folder, write_atomic
+from eslam_core.atomic import OutputsNotWritten, OutputWriteError, make_output_folder, write_atomic
 from eslam_core.outputs.mesh import EmptyMeshError, save_ply
 from eslam_core.runtime.api import peak_rss_mb
 from eslam_core.slam import SLAM
@@ -79,7 +79,7 @@ def run_sequence(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_label
 
     if localize:  # every frame, against the saved map (which starts lost: the camera has to be found)
         slam = load_checkpoint(resume, mode="localization")
-        slam.trajectory = TrackedTrajectory()  # this run's frames
+        slam.tracking.trajectory = TrackedTrajectory()  # this run's frames
         todo = list(range(len(dataset)))
         log.info("localizing against %s: %d keyframes, map left as it is", resume, len(slam.map.keyframes))
     elif resume is not None:

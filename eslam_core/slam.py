@@ -1,8 +1,8 @@
 """The SLAM system in lock-step: track every frame against the current map, and every `mapping.every` frames make
 the frame a keyframe and run a mapping step (paper Sec. 3.4).
 
-The parts are the tracking front end (`tracking/frontend.py`), the scene map (`mapping/scene_map.py`) and the
-trajectory (`trajectory.py`); the pipelined runtime assembles the same parts in its two processes.
+The parts are the tracking session (`tracking/session.py`: front end, trajectory, keyframe making) and the scene map
+(`mapping/scene_map.py`); the pipelined runtime's two processes drive the same parts.
 """
 from __future__ import annotations
 
@@ -10,15 +10,14 @@ from dataclasses import dataclass
 from typing import Callable, Optional
 
 import numpy as np
-import torch
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config, config_from_dict
 from eslam_core.cpu import keep_freed_memory
-from eslam_core.frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
-from eslam_core.mapping.keyframes import Keyframe
-from eslam_core.mapping.scene_map import SceneMap, initial_extent
-from eslam_core.tracking.frontend import TrackingFrontEnd
+from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics
+from eslam_core.map_file import check_compatible, read_checkpoint
+from eslam_core.mapping.scene_map import SceneMap
+from eslam_core.tracking.session import PoseCorrections, TrackingSession
 from eslam_core.trajectory import TrackedTrajectory
 
 CHECKPOINT_VERSION = 4
@@ -39,11 +38,6 @@ class StepResult:
     degraded: bool = False  # the view leaves the pose free in some direction: not mapped (quality.py)
 
 
-def new_keyframe(pf: PreparedFrame, pose: torch.Tensor, number: int) -> Keyframe:
-    return Keyframe.from_tensors(pf.index, pf.timestamp, pf.rgb, pf.depth, torch.ones_like(pf.depth, dtype=torch.bool),
-                                 pose, number)
-
-
 class SLAM:
     def __init__(self, cfg: Config, intrinsics: Intrinsics):
         keep_freed_memory()  # process-wide, see cpu.py
@@ -51,43 +45,37 @@ class SLAM:
         self.input_intrinsics = intrinsics
         self.intr = working_intrinsics(intrinsics, cfg.camera)
         self.dirs_cam = pixel_directions_table(self.intr)
-        self.frontend = TrackingFrontEnd(cfg, self.intr, self.dirs_cam)
+        self.tracking = TrackingSession(cfg, self.intr, self.dirs_cam)
         self.map = SceneMap(cfg, self.intr, self.dirs_cam)
-        self.trajectory = TrackedTrajectory()
-        self.stop_mapping_early: Optional[Callable[[int], bool]] = None  # see Mapper.map (set by the runtime)
+        # Called after every mapping iteration (Mapper.map): the runtime's way to end a step early or abandon it.
+        self.after_mapping_iteration: Optional[Callable[[int], bool]] = None
+
+    @property
+    def trajectory(self) -> TrackedTrajectory:
+        return self.tracking.trajectory
 
     def step(self, frame: Frame) -> StepResult:
         pf = prepare_frame(frame, self.input_intrinsics, self.cfg.camera)
-        if not self.map.started:
-            pose0 = self.frontend.first_pose(pf, self.trajectory)
-            self.map.start(initial_extent(self.cfg, pf, self.intr, pose0))
-            self.trajectory.record(pf.index, pf.timestamp, pose0, 0.0, pf.gt_pose, keyframe=True)
-            kf = new_keyframe(pf, torch.from_numpy(pose0).float(), 0)
-            self.frontend.remember(kf)
-            self.map.add_keyframe(kf)
-            step = self.map.warm_up()
-            return StepResult(pf.index, pose0, 0.0, True, step.loss, {}, 1.0, False, True)
-        tracked = self.frontend.track(pf, self.map, self.trajectory)
-        pose = tracked.pose.double().numpy()
         n = len(self.trajectory)
-        # Localization refines nothing: each frame is its own anchor (its pose as tracked).
-        anchor = tracked.keyframe or self.cfg.run.mode == "localization"
-        self.trajectory.record(pf.index, pf.timestamp, pose, tracked.loss, pf.gt_pose, anchor,
-                               tracked.quality.value, tracked.lost, tracked.quality.degraded, tracked.covariance_matrix)
-        mapping_loss, refined = float("nan"), {}
-        if tracked.keyframe:
-            number = self.trajectory.keyframes - 1
-            kf = new_keyframe(pf, tracked.pose, number)
-            self.frontend.remember(kf)
+        if not self.map.started:
+            tracked, kf = self.tracking.first(pf)
+            self.map.start(tracked.extent)
             self.map.add_keyframe(kf)
-            self.frontend.forget(self.map.keyframes.take_dropped())
-            step = self.map.map_newest(self.stop_mapping_early)
-            self.trajectory.refine(step.refined)
-            self.frontend.refine(step.refined)
+            step = self.map.warm_up(self.after_mapping_iteration)
+            return StepResult(pf.index, self.trajectory.pose(n), 0.0, True, step.loss, {}, 1.0, False, True)
+        tracked = self.tracking.step(pf, self.map)
+        mapping_loss, refined = float("nan"), {}
+        if tracked.keyframe_due:
+            kf = self.tracking.new_keyframe(pf, tracked)
+            self.tracking.remember(kf)
+            self.map.add_keyframe(kf)
+            step = self.map.map_newest(self.after_mapping_iteration)
+            self.tracking.apply(PoseCorrections(step.refined, tuple(self.map.keyframes.take_dropped())))
             mapping_loss, refined = step.loss, step.refined
-        return StepResult(pf.index, self.trajectory.pose(n), tracked.loss, tracked.keyframe, mapping_loss, refined,
-                          tracked.quality.value, tracked.lost, anchor, tracked.covariance_matrix,
-                          tracked.quality.degraded)
+        pose = tracked.pose
+        return StepResult(pf.index, self.trajectory.pose(n), pose.loss, pose.keyframe, mapping_loss, refined,
+                          pose.quality.value, pose.lost, tracked.anchor, pose.covariance_matrix,
+                          pose.quality.degraded)
 
     # ------------------------------------------------------------------------------------------------ checkpoint
     def state_dict(self) -> dict:
@@ -110,8 +98,8 @@ class SLAM:
         cfg = dict(state["config"], run=dict(state["config"].get("run", {}), device=device))
         slam = SLAM(config_from_dict(cfg, "checkpoint"), Intrinsics(**state["intrinsics"]))
         slam.map.load_state_dict(state["map"])
-        slam.trajectory = TrackedTrajectory.from_state_dict(state["trajectory"])
-        slam.frontend.start_lost(slam.map.keyframes)
+        slam.tracking.trajectory = TrackedTrajectory.from_state_dict(state["trajectory"])
+        slam.tracking.frontend.start_lost(slam.map.keyframes)
         return slam
 
 
@@ -122,7 +110,7 @@ def loaded_slam(path, cfg: Config, intrinsics: Intrinsics) -> "SLAM":
     state["config"].setdefault("run", {})["mode"] = cfg.run.mode
     slam = SLAM.from_state_dict(state)
     if cfg.run.mode == "localization":
-        slam.trajectory = TrackedTrajectory()
+        slam.tracking.trajectory = TrackedTrajectory()
     return slam
 
 
@@ -140,8 +128,6 @@ def read_loadable(path, cfg: Config, intrinsics: Optional[Intrinsics]) -> dict:
     the camera is not checked): intact, of this version and compatible (map_file.check_compatible); a
     CheckpointError line otherwise. Every map load goes through here, and so does ~/load_map before it drops
     the node's map."""
-    from eslam_core.outputs.map_file import check_compatible, read_checkpoint  # (outputs/ builds on this module)
-
     state = read_checkpoint(path, CHECKPOINT_VERSION)
     check_compatible(state, cfg, intrinsics, path)
     return state

@@ -4,6 +4,9 @@ Mapping refines keyframe poses only. Every other frame is stored relative to its
 keyframe's correction, blended (by time) into the next keyframe's correction as it nears that keyframe
 (`frame_pose`): tracking errors drift smoothly between keyframes, and mapping corrects them at the keyframes only.
 The same class serves the lock-step system, the tracking process and the runtime's copy in the caller's process.
+
+`Trajectory` is the plain sequence of time stamps and poses that is written to a file (datasets/tum.py) and compared
+with the ground truth (evaluation/trajectory.py).
 """
 from __future__ import annotations
 
@@ -14,6 +17,39 @@ import numpy as np
 import torch
 
 from eslam_core.geometry import interpolate_pose
+
+
+class TrajectoryError(ValueError):
+    """A trajectory that cannot be read or compared (malformed file, non-finite pose, no common timestamps)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    timestamps: np.ndarray  # (N,) seconds (or frame numbers for data sets without a clock)
+    poses: np.ndarray  # (N, 4, 4) camera-to-world
+
+    def __post_init__(self) -> None:
+        timestamps = np.asarray(self.timestamps, dtype=np.float64)
+        poses = np.asarray(self.poses, dtype=np.float64)
+        if timestamps.ndim != 1 or poses.shape != (len(timestamps), 4, 4):
+            raise TrajectoryError(
+                f"a trajectory needs N timestamps and N 4x4 poses, got {timestamps.shape} and {poses.shape}"
+            )
+        bad = np.flatnonzero(~(np.isfinite(poses).all(axis=(1, 2)) & np.isfinite(timestamps)))
+        if bad.size:
+            raise TrajectoryError(
+                f"pose at timestamp {float(timestamps[bad[0]])!r} is not finite (nan/inf); {bad.size} such poses: "
+                "the estimator lost track there, remove or fix those poses"
+            )
+        object.__setattr__(self, "timestamps", timestamps)
+        object.__setattr__(self, "poses", poses)
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.poses[:, :3, 3]
 
 
 @dataclass

@@ -42,7 +42,9 @@ from tqdm import tqdm
 from eslam_core.cli import parse_frames, parse_overrides
 from eslam_core.config import Config, list_presets, load_config, save_config
 from eslam_core.datasets import RGBDDataset, open_dataset
-from eslam_core.evaluation.trajectory import Trajectory, ate, write_tum
+from eslam_core.datasets.tum import write_tum
+from eslam_core.evaluation.trajectory import ate
+from eslam_core.trajectory import Trajectory
 from eslam_ros.conversions import (
     camera_info_from_intrinsics,
     depth_to_image,
@@ -458,7 +460,7 @@ def run_bag(
     starts at the first ground-truth pose and the ATE is computed.
     """
     from eslam_core.runtime import make_runtime
-    from eslam_ros.slam_node import InputPipeline, configured_intrinsics
+    from eslam_ros.input_pipeline import InputPipeline, configured_intrinsics
 
     out_dir = Path(out_dir)
     fixed = configured_intrinsics(cfg)
@@ -541,7 +543,7 @@ def _accepted_frames(reader: Reader, rgb_c: Any, depth_c: Any, info_c: Any, pipe
     With an odometry (`robot`, fed from `odom_c`), frames come out once their odometry is settled, bag time
     standing for the clock (a frame waits for odometry until the bag is `odom.wait` s past its stamp)."""
     from eslam_ros.robot_odometry import frame_with_odometry
-    from eslam_ros.slam_node import AcceptedFrame, SkippedInput
+    from eslam_ros.input_pipeline import AcceptedFrame, SkippedInput
 
     streams = {rgb_c.id: 0, depth_c.id: 1}
     wanted = [rgb_c, depth_c] + ([info_c] if info_c is not None else []) + ([odom_c] if odom_c is not None else [])

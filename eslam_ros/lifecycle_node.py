@@ -30,7 +30,8 @@ from rclpy.signals import SignalHandlerOptions
 from eslam_core.config import ConfigError
 from eslam_ros.node_params import NodeParameterError
 from eslam_ros.qos import use_shipped_fastdds_profile
-from eslam_ros.slam_node import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, SlamNode, _StopRequest, spin_once
+from eslam_ros.node_threads import StopRequest, spin_once
+from eslam_ros.slam_node import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, SlamNode
 
 
 class LifecycleSlamNode(SlamNode, LifecycleNode):
@@ -104,7 +105,7 @@ class LifecycleSlamNode(SlamNode, LifecycleNode):
 def main(argv: Optional[list[str]] = None) -> int:
     use_shipped_fastdds_profile()
     rclpy.init(args=argv if argv is not None else sys.argv, signal_handler_options=SignalHandlerOptions.NO)
-    stop = _StopRequest()
+    stop = StopRequest()
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGTERM, stop)
     node = LifecycleSlamNode()

@@ -33,49 +33,31 @@ import sys
 import threading
 import time
 import traceback
-from collections import deque
 from dataclasses import dataclass, field
-from enum import Enum
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence, Union
+from typing import Any, Optional, Sequence
 
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped, TransformStamped, Vector3
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry, Path as PathMsg
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks
-from rclpy.exceptions import InvalidHandle
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
-from eslam_core.camera import Frame, Intrinsics
+from eslam_core.camera import Intrinsics
 from eslam_core.config import Config, ConfigError
-from eslam_core.outputs.atomic import failure_line, make_output_folder
+from eslam_core.atomic import failure_line, make_output_folder
 from eslam_core.runtime import RuntimeCrashed, make_runtime
 from eslam_core.tracking.information import PoseCovariance, covariance_at
 from eslam_core.tracking.quality import degenerate_view
-from eslam_ros.conversions import (
-    InvalidCameraInfoError,
-    InvalidPoseError,
-    MalformedImageError,
-    UnsupportedImageError,
-    image_to_depth,
-    image_to_rgb,
-    intrinsics_from_camera_info,
-    path_cdr,
-    pose_to_msg,
-    sec_to_stamp,
-    stamp_to_sec,
-    to_time,
-)
+from eslam_ros.conversions import InvalidPoseError, path_cdr
 from eslam_ros.mesh_publication import MESH_POLL_S, MeshPublication
 from eslam_ros.node_params import (
     ESLAM_PREFIX,
@@ -91,15 +73,16 @@ from eslam_ros.node_params import (
     unknown_parameter_error,
 )
 from eslam_ros.qos import input_qos, latched_qos, output_qos, use_shipped_fastdds_profile
-from eslam_ros.sync import ApproximateTimeSynchronizer
 
+from eslam_ros.input_pipeline import (DEPTH, RGB, STREAM_NAMES, AcceptedFrame, InputPipeline, PipelineEvent,
+                                     SkippedInput, StreamRestart, configured_intrinsics)
+from eslam_ros.node_threads import CallbackGate, LogThrottle, PeriodicThread, StopRequest, node_executor, spin_once
+from eslam_ros.pose_messages import odometry, pose_stamped, twist_between
 from eslam_ros.diagnostics import InputMonitor, StatusInputs, diagnostic_array, status_level, status_marker
 from eslam_ros.robot_odometry import FrameOdometry, RobotOdometry, frame_with_odometry
 from eslam_ros.start_queue import StartQueue, frame_bytes
 from eslam_ros.tf_chain import TfOdometry, TfOutput, base_in_map, map_to_odom, select_setup, transform_stamped
 
-RGB, DEPTH = 0, 1  # stream indices in the synchronizer
-STREAM_NAMES = ("rgb/image", "depth/image")
 EXIT_OK, EXIT_FAILED, EXIT_BAD_PARAMETERS, EXIT_INTERRUPTED = 0, 1, 2, 130
 # At shutdown with the live policy: how long the frame in progress may take before the runtime is stopped.
 LIVE_DRAIN_TIMEOUT_S = 10.0
@@ -109,327 +92,7 @@ POSE_WAIT_S = 0.05  # the pose thread's longest wait for a pose (it checks for a
 # ================================================================================================= input pipeline
 
 
-class SkipReason(str, Enum):
-    """Why an input was not turned into a frame; the value is the counter's name in ~/status."""
-
-    UNSUPPORTED_ENCODING = "unsupported_encoding"
-    MALFORMED_IMAGE = "malformed_image"
-    SIZE_MISMATCH = "size_mismatch"
-    NO_CAMERA_INFO = "no_camera_info"
-    INVALID_CAMERA_INFO = "invalid_camera_info"  # counts camera-info messages, not frames
-    INTRINSICS_CHANGED = "intrinsics_changed"
-    NON_MONOTONIC_STAMP = "non_monotonic_stamp"  # counts image messages, not frames
-
-
-@dataclass(frozen=True)
-class AcceptedFrame:
-    """A paired, converted and checked RGB-D frame, ready for the SLAM runtime."""
-
-    frame: Frame
-    stamp: Any  # builtin_interfaces/Time of the rgb image: the stamp of every output computed from it
-    frame_id: str  # the rgb image's frame (the camera's optical frame)
-    intrinsics: Intrinsics
-    received: float  # time.monotonic() when the message completing the pair arrived
-
-
-@dataclass(frozen=True)
-class SkippedInput:
-    reason: SkipReason
-    message: str
-
-
-@dataclass(frozen=True)
-class StreamRestart:
-    """Stamps jumped back by `jump` seconds (e.g. a bag started over): what follows is a new stream."""
-
-    jump: float
-
-
-PipelineEvent = Union[AcceptedFrame, SkippedInput, StreamRestart]
-
-
-class InputPipeline:
-    """Messages in, frames out: pairs rgb and depth images, converts them and checks them against the camera.
-
-    Holds no ROS node, so the live node and the offline bag runner (`eslam bag run`) share it. Every problem is
-    returned as a SkippedInput event (and counted in `skipped`) instead of raised.
-
-    depth_scale: depth units per metre (None: by encoding, REP 118). fixed_intrinsics: use these instead of
-    camera-info messages. time_jump_reset: a stamp at least this many seconds older than its stream's last one
-    restarts the stream (None: such messages are skipped like any other non-monotonic stamp).
-    """
-
-    def __init__(
-        self,
-        *,
-        queue_size: int = 10,
-        max_interval: Optional[float] = 0.02,
-        age_penalty: float = 0.1,
-        depth_scale: Optional[float] = None,
-        fixed_intrinsics: Optional[Intrinsics] = None,
-        time_jump_reset: Optional[float] = 1.0,
-    ) -> None:
-        self.sync = ApproximateTimeSynchronizer(2, queue_size, max_interval, age_penalty)
-        self.depth_scale = depth_scale
-        self.fixed_intrinsics = fixed_intrinsics
-        self.time_jump_reset = time_jump_reset
-        self.camera_infos: dict[str, Intrinsics] = {}  # latest valid camera info per frame_id
-        self.latest_info: Optional[Intrinsics] = None
-        # The intrinsics of the first accepted frame (the map is built for them): later frames must have the same.
-        self.intrinsics: Optional[Intrinsics] = fixed_intrinsics
-        self.frames_accepted = 0
-        self.pairs = 0
-        self.skipped: dict[str, int] = {reason.value: 0 for reason in SkipReason}
-        self._last_stamp: list[Optional[float]] = [None, None]
-        self._received: list[float] = [0.0, 0.0]  # arrival of the newest message per stream
-        # Pairs that came before any camera info (drivers start the streams together, in no particular order):
-        # they wait, at most queue_size of them, and are assembled when the first camera info arrives.
-        self._awaiting_info: deque[tuple[Any, Any, float]] = deque()
-
-    # -------------------------------------------------------------------------------------------- inputs
-
-    def add_camera_info(self, msg: Any) -> list[PipelineEvent]:
-        try:
-            intrinsics = intrinsics_from_camera_info(msg)
-        except InvalidCameraInfoError as error:
-            return [self._skip(SkipReason.INVALID_CAMERA_INFO, f"camera info on rgb/camera_info ignored: {error}")]
-        self.camera_infos[msg.header.frame_id] = intrinsics
-        self.latest_info = intrinsics
-        events: list[PipelineEvent] = []
-        while self._awaiting_info:
-            events.append(self._assemble(*self._awaiting_info.popleft()))
-        return events
-
-    def add_image(self, stream: int, msg: Any, received: Optional[float] = None) -> list[PipelineEvent]:
-        """Queue an rgb (stream RGB) or depth (stream DEPTH) image; returns the frames and skips it caused."""
-        received = time.monotonic() if received is None else received
-        stamp = stamp_to_sec(msg.header.stamp)
-        events: list[PipelineEvent] = []
-        last = self._last_stamp[stream]
-        if last is not None and stamp < last:
-            jump = last - stamp
-            if self.time_jump_reset is None or jump < self.time_jump_reset:
-                return [self._skip(
-                    SkipReason.NON_MONOTONIC_STAMP,
-                    f"{STREAM_NAMES[stream]} stamp {stamp:.6f} s is {jump:.6f} s older than the previous one: message "
-                    f"skipped (the publisher's clock went back; restamp it or replay the bag in order)",
-                )]
-            events += self.flush()  # the old stream's last pair, then start afresh
-            events.append(StreamRestart(jump))
-            self._last_stamp = [None, None]
-        self._last_stamp[stream] = stamp
-        self._received[stream] = received
-        for rgb_msg, depth_msg in self.sync.add(stream, stamp, msg):
-            events += self._pair(rgb_msg, depth_msg, max(self._received))
-        return events
-
-    def flush(self) -> list[PipelineEvent]:
-        """End of stream (or a pause): emit the pending pair(s). Stamps must still go on increasing afterwards."""
-        events: list[PipelineEvent] = []
-        for rgb_msg, depth_msg in self.sync.flush():
-            events += self._pair(rgb_msg, depth_msg, max(self._received))
-        while self._awaiting_info:
-            rgb_msg = self._awaiting_info.popleft()[0]
-            events.append(self._skip(SkipReason.NO_CAMERA_INFO, self._no_info_message(rgb_msg)))
-        return events
-
-    @property
-    def unpaired(self) -> dict[str, int]:
-        """Images dropped by the synchronizer because no partner close enough in time arrived."""
-        return {"unpaired_rgb": self.sync.dropped[RGB], "unpaired_depth": self.sync.dropped[DEPTH]}
-
-    # -------------------------------------------------------------------------------------------- pairs
-
-    def _pair(self, rgb_msg: Any, depth_msg: Any, received: float) -> list[PipelineEvent]:
-        """A pair from the synchronizer: assembled now, or held until the first camera info arrives."""
-        self.pairs += 1
-        if self.fixed_intrinsics is not None or self.latest_info is not None:
-            return [self._assemble(rgb_msg, depth_msg, received)]
-        self._awaiting_info.append((rgb_msg, depth_msg, received))
-        if len(self._awaiting_info) > self.sync.queue_size:
-            return [self._skip(SkipReason.NO_CAMERA_INFO, self._no_info_message(self._awaiting_info.popleft()[0]))]
-        return []
-
-    @staticmethod
-    def _no_info_message(rgb_msg: Any) -> str:
-        return (f"frame skipped: no camera info received yet for frame '{rgb_msg.header.frame_id}'; remap "
-                f"rgb/camera_info to the colour camera's camera_info topic (or set eslam.camera.fx/fy/cx/cy/width/"
-                f"height)")
-
-    def _assemble(self, rgb_msg: Any, depth_msg: Any, received: float) -> PipelineEvent:
-        try:
-            rgb = image_to_rgb(rgb_msg)
-            depth = image_to_depth(depth_msg, self.depth_scale)
-        except UnsupportedImageError as error:
-            return self._skip(SkipReason.UNSUPPORTED_ENCODING, f"frame skipped: {error}")
-        except MalformedImageError as error:
-            return self._skip(SkipReason.MALFORMED_IMAGE, f"frame skipped: {error}")
-        height, width = rgb.shape[:2]
-        if depth.shape != (height, width):
-            return self._skip(
-                SkipReason.SIZE_MISMATCH,
-                f"frame skipped: rgb is {width}x{height} but depth is {depth.shape[1]}x{depth.shape[0]}; the depth "
-                f"image must be registered to the colour image (e.g. realsense2_camera align_depth.enable:=true, "
-                f"and remap depth/image to the aligned depth topic)",
-            )
-        frame_id = rgb_msg.header.frame_id
-        intrinsics = self.fixed_intrinsics or self.camera_infos.get(frame_id) or self.latest_info
-        if (intrinsics.width, intrinsics.height) != (width, height):
-            return self._skip(
-                SkipReason.SIZE_MISMATCH,
-                f"frame skipped: images are {width}x{height} but the camera info says "
-                f"{intrinsics.width}x{intrinsics.height}; remap rgb/camera_info to the camera_info of the rgb topic",
-            )
-        if self.intrinsics is None:
-            self.intrinsics = intrinsics
-        elif intrinsics != self.intrinsics:
-            return self._skip(
-                SkipReason.INTRINSICS_CHANGED,
-                f"frame skipped: camera intrinsics changed from {self.intrinsics} to {intrinsics}; the map is built "
-                f"with the first ones: restart the node to use the new calibration",
-            )
-        frame = Frame(index=self.frames_accepted, timestamp=stamp_to_sec(rgb_msg.header.stamp), rgb=rgb,
-                      depth=depth, pose=None)
-        self.frames_accepted += 1
-        return AcceptedFrame(frame, to_time(rgb_msg.header.stamp), frame_id, intrinsics, received)
-
-    def _skip(self, reason: SkipReason, message: str) -> SkippedInput:
-        self.skipped[reason.value] += 1
-        return SkippedInput(reason, message)
-
-
-class LogThrottle:
-    """At most one log line per key every `period` seconds."""
-
-    def __init__(self, period: float) -> None:
-        self.period = period
-        self._last: dict[str, float] = {}
-
-    def allow(self, key: str, now: Optional[float] = None) -> bool:
-        now = time.monotonic() if now is None else now
-        last = self._last.get(key)
-        if last is not None and now - last < self.period:
-            return False
-        self._last[key] = now
-        return True
-
-
-# ================================================================================================= output messages
-
-
-def twist_between(pose_a: np.ndarray, t_a: float, pose_b: np.ndarray, t_b: float) -> tuple[np.ndarray, np.ndarray]:
-    """(linear, angular) velocity of the camera moving from pose_a to pose_b, in the camera frame of pose_b.
-
-    Finite differences: linear = R_b^T (t_b - t_a) / dt; angular = rotation vector of R_a^T R_b / dt. Zero when
-    dt <= 0 (the first pose, or equal stamps).
-    """
-    dt = t_b - t_a
-    if dt <= 0:
-        return np.zeros(3), np.zeros(3)
-    linear = pose_b[:3, :3].T @ (pose_b[:3, 3] - pose_a[:3, 3]) / dt
-    angular = Rotation.from_matrix(pose_a[:3, :3].T @ pose_b[:3, :3]).as_rotvec() / dt
-    return linear, angular
-
-
-def pose_stamped(pose: np.ndarray, stamp: Any, frame_id: str) -> PoseStamped:
-    msg = PoseStamped(pose=pose_to_msg(pose))
-    msg.header.stamp = stamp
-    msg.header.frame_id = frame_id
-    return msg
-
-
-# Pose covariance of ~/odom (x y z roll pitch yaw) where the tracker measured none (a pose from the odometry alone, a
-# tracker without normal equations): a well-tracked pose is good to about a centimetre and half a degree, divided by
-# its tracking quality; a lost one is unknown.
-TRACKED_SIGMA = (0.01, 0.01, 0.01, 0.01, 0.01, 0.01)
-LOST_VARIANCE = 1e6
-
-
-def pose_covariance(quality: float, lost: bool, measured: Optional[np.ndarray] = None) -> list[float]:
-    """~/odom's 36 values: the tracker's covariance (6x6, already in the published pose's frame) where it measured
-    one, else the stand-in above."""
-    if lost:
-        return [float(v) for v in np.diag([LOST_VARIANCE] * 6).reshape(-1)]
-    if measured is not None:
-        return [float(v) for v in np.asarray(measured, dtype=np.float64).reshape(-1)]
-    variances = [(s / max(quality, 0.05)) ** 2 for s in TRACKED_SIGMA]
-    return [float(v) for v in np.diag(variances).reshape(-1)]
-
-
-def odometry(pose: np.ndarray, twist: tuple[np.ndarray, np.ndarray], stamp: Any, frame_id: str,
-             child_frame_id: str, quality: float = 1.0, lost: bool = False,
-             covariance: Optional[np.ndarray] = None) -> Odometry:
-    msg = Odometry(child_frame_id=child_frame_id)
-    msg.pose.covariance = pose_covariance(quality, lost, covariance)
-    msg.header.stamp = stamp
-    msg.header.frame_id = frame_id
-    msg.pose.pose = pose_to_msg(pose)
-    linear, angular = twist
-    msg.twist.twist.linear = Vector3(x=float(linear[0]), y=float(linear[1]), z=float(linear[2]))
-    msg.twist.twist.angular = Vector3(x=float(angular[0]), y=float(angular[1]), z=float(angular[2]))
-    return msg
-
-
 # ================================================================================================= the node
-
-
-class CallbackGate:
-    """Counts the node's callbacks in progress, so that shutdown can wait for them, and turns new ones away once
-    closed. (rclpy's MultiThreadedExecutor.shutdown does not wait for callbacks running on its threads.)
-
-    An exception escaping a callback would stop the executor, and with it the node: the gate hands it to
-    `on_error` instead.
-    """
-
-    def __init__(self, on_error: Callable[[BaseException], None]) -> None:
-        self._condition = threading.Condition()
-        self._running = 0
-        self._on_error = on_error
-        self.closed = False
-
-    def wrap(self, callback: Callable[..., Any], when_closed: Optional[Callable[..., Any]] = None) -> Callable:
-        def gated(*args: Any) -> Any:
-            with self._condition:
-                if self.closed:
-                    return when_closed(*args) if when_closed else None
-                self._running += 1
-            try:
-                return callback(*args)
-            except Exception as error:  # noqa: BLE001 - reported, and the node goes on (or stops, if SLAM died)
-                self._on_error(error)
-                return when_closed(*args) if when_closed else None
-            finally:
-                with self._condition:
-                    self._running -= 1
-                    self._condition.notify_all()
-
-        return gated
-
-    def close(self, timeout: float) -> bool:
-        """Refuse new callbacks; True once none is running (False if `timeout` seconds passed first)."""
-        with self._condition:
-            self.closed = True
-            return self._condition.wait_for(lambda: self._running == 0, timeout)
-
-
-class PeriodicThread:
-    """Calls `body` every `period` seconds (0: again at once; the body then waits itself) on a thread of its
-    own, until stopped."""
-
-    def __init__(self, name: str, period: float, body: Callable[[], Any]) -> None:
-        self._stop = threading.Event()
-        self._period, self._body = period, body
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.wait(self._period):
-            self._body()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not threading.current_thread():
-            self._thread.join()
 
 
 def _refused(request: Any, response: Any) -> Any:
@@ -1203,57 +866,14 @@ class SlamNode(Node):
             time.sleep(0.02)
 
 
-def configured_intrinsics(cfg: Config) -> Optional[Intrinsics]:
-    """Intrinsics set in the configuration (eslam.camera.*), which then replace camera-info messages."""
-    c = cfg.camera
-    if c.fx is None:
-        return None
-    return Intrinsics(c.width, c.height, c.fx, c.fy, c.cx, c.cy)
-
-
 # ================================================================================================= process
-
-
-class _StopRequest:
-    """SIGINT / SIGTERM: the first asks the spin loop to stop and save; a second one abandons the saving."""
-
-    def __init__(self) -> None:
-        self.requested = False
-
-    def __call__(self, signum: int, frame: Any) -> None:
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
-
-
-def node_executor() -> Any:
-    """rclpy's EventsExecutor where this rclpy has it, else a MultiThreadedExecutor. The node measured 40 % of a
-    core in the MultiThreadedExecutor's own Python bookkeeping (a wait set rebuilt at every wake-up, several per
-    image) against 27 % in all with the EventsExecutor (docs/ros.md). It runs every callback on one thread, so the
-    node keeps what may take long off it: poses and the mesh have threads of their own."""
-    try:
-        from rclpy.experimental import EventsExecutor
-    except ImportError:
-        return MultiThreadedExecutor(num_threads=2)
-    return EventsExecutor()
-
-
-def spin_once(executor: Any, timeout_sec: float) -> None:
-    """One turn of `executor`, through rclpy's race with entities destroyed on another thread (rclpy issue 1142):
-    a lifecycle transition, run on an executor thread, removes the node's subscriptions while this thread builds
-    its wait set from them; rclpy then raises InvalidHandle from `spin_once`, and the next wait set no longer holds
-    them. Left uncaught, deactivating the node stopped its executor."""
-    try:
-        executor.spin_once(timeout_sec=timeout_sec)
-    except InvalidHandle:
-        pass
 
 
 def main(argv: Optional[list[str]] = None) -> int:
     use_shipped_fastdds_profile()
     # rclpy's own handlers would shut the context down at once; ours let the node save its outputs first.
     rclpy.init(args=argv if argv is not None else sys.argv, signal_handler_options=SignalHandlerOptions.NO)
-    stop = _StopRequest()
+    stop = StopRequest()
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGTERM, stop)
     try:

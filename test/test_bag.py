@@ -21,7 +21,8 @@ from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import CameraInfo, Image
 
 from eslam_core.config import load_config
-from eslam_core.evaluation.trajectory import read_tum, still_camera_ate
+from eslam_core.datasets.tum import read_tum
+from eslam_core.evaluation.trajectory import still_camera_ate
 from eslam_ros.bag import (
     BagError,
     BagTopics,

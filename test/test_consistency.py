@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from eslam_core.camera import Intrinsics
 from eslam_core.datasets.synthetic import build_room, default_intrinsics, handheld_trajectory, look_at
-from eslam_core.evaluation.consistency import (
+from eslam_core.mapping.consistency import (
     choose_pairs,
     keyframe_consistency,
     pair_consistency,

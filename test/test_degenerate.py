@@ -16,7 +16,7 @@ from eslam_core.datasets.synthetic import generate_scene
 from eslam_core.frames import prepare_frame
 from eslam_core.runtime import make_runtime
 from eslam_core.slam import SLAM
-from eslam_core.tracking.render_tracker import make_tracker
+from eslam_core.tracking.frontend import make_tracker
 
 FLAG_ABOVE_M = 0.02  # a pose further off than this must be flagged
 BACK_UNDER_M = 0.01  # ... and after the stretch the error must be back under this

@@ -32,17 +32,9 @@ from eslam_core.evaluation.report import (
     render_markdown,
     write_report_json,
 )
-from eslam_core.evaluation.trajectory import (
-    Trajectory,
-    TrajectoryError,
-    associate,
-    ate,
-    read_tum,
-    rpe,
-    still_camera_ate,
-    umeyama_alignment,
-    write_tum,
-)
+from eslam_core.datasets.tum import read_tum, write_tum
+from eslam_core.evaluation.trajectory import associate, ate, rpe, still_camera_ate, umeyama_alignment
+from eslam_core.trajectory import Trajectory, TrajectoryError
 from eslam_core.rendering.raycast import render_depth
 
 # ---------------------------------------------------------------------------------------------------------------

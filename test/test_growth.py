@@ -12,7 +12,8 @@ from eslam_core.camera import Intrinsics
 from eslam_core.config import ModelConfig, load_config
 from eslam_core.datasets import open_dataset
 from eslam_core.datasets.synthetic import generate_scene
-from eslam_core.evaluation.trajectory import read_tum, still_camera_ate
+from eslam_core.datasets.tum import read_tum
+from eslam_core.evaluation.trajectory import still_camera_ate
 from eslam_core.mapping.extent import grown_extent
 from eslam_core.mapping.keyframes import REDUCED_STRIDE, Keyframe, KeyframeStore
 from eslam_core.mapping.observed import ObservedSpace

@@ -76,7 +76,7 @@ def test_a_camera_lost_for_a_few_frames_is_predicted_where_its_motion_took_it(ro
     for i in range(20, 22):
         assert slam.step(_covered(room_sequence[i])).lost
     frame = room_sequence[22]
-    predicted, gap, _ = slam.frontend.predict(prepare_frame(frame, slam.intr, slam.cfg.camera), slam.trajectory)
+    predicted, gap, _ = slam.tracking.frontend.predict(prepare_frame(frame, slam.intr, slam.cfg.camera), slam.trajectory)
     assert gap == pytest.approx(3.0, abs=1e-3)
     t_err, r_err = _error(predicted, frame.pose)
     assert t_err < 0.01 and r_err < 1.0
@@ -103,7 +103,7 @@ def test_eslam_run_localize_leaves_the_saved_map_as_it_is(mapped, room_sequence,
     was (its bytes compared)."""
     from eslam_core.cli import main
     from eslam_core.outputs.export import load_checkpoint, save_checkpoint
-    from eslam_core.evaluation.trajectory import read_tum
+    from eslam_core.datasets.tum import read_tum
 
     saved = save_checkpoint(mapped, tmp_path / "map.pt")
     before = saved.read_bytes()

@@ -13,7 +13,7 @@ from eslam_core.cli import main as eslam
 from eslam_core.config import load_config
 from eslam_core.datasets.synthetic import default_intrinsics
 from eslam_core.outputs.export import load_checkpoint, save_checkpoint
-from eslam_core.outputs.map_file import CheckpointError, read_checkpoint
+from eslam_core.map_file import CheckpointError, read_checkpoint
 from eslam_core.slam import CHECKPOINT_VERSION, SLAM
 
 
@@ -128,7 +128,7 @@ def test_eslam_mesh_reports_a_bad_file_in_one_line(tmp_path, capsys):
 def test_a_map_is_checked_against_the_loading_configuration_and_camera_in_one_place(tmp_path):
     """check_compatible: the checks a runtime's load makes (slam.read_loadable / loaded_slam), each refusal one line
     naming the setting; the camera is skipped when not known yet (the ROS node before its first frame)."""
-    from eslam_core.outputs.map_file import check_compatible
+    from eslam_core.map_file import check_compatible
     from eslam_core.slam import loaded_slam
 
     cfg, camera = load_config("fast"), default_intrinsics(64, 48)

@@ -296,7 +296,7 @@ def test_a_path_written_as_bytes_is_the_message_rclpy_builds(frame_id):
     from nav_msgs.msg import Path as PathMsg
 
     from eslam_ros.conversions import path_cdr
-    from eslam_ros.slam_node import pose_stamped
+    from eslam_ros.pose_messages import pose_stamped
 
     rng = np.random.default_rng(len(frame_id))
     poses = np.tile(np.eye(4), (5, 1, 1))

@@ -29,7 +29,9 @@ from visualization_msgs.msg import MarkerArray
 
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config, ConfigError, load_config
-from eslam_core.evaluation.trajectory import Trajectory, ate, read_tum, still_camera_ate
+from eslam_core.datasets.tum import read_tum
+from eslam_core.evaluation.trajectory import ate, still_camera_ate
+from eslam_core.trajectory import Trajectory
 from eslam_core.trajectory import thinned
 from eslam_ros.bag import write_bag
 from eslam_ros.conversions import camera_info_from_intrinsics, depth_to_image, msg_to_pose, rgb_to_image, \
@@ -43,16 +45,8 @@ from eslam_ros.node_params import (
     resolve_config,
     settings_from_parameters,
 )
-from eslam_ros.slam_node import (
-    DEPTH,
-    RGB,
-    AcceptedFrame,
-    InputPipeline,
-    SkippedInput,
-    SkipReason,
-    StreamRestart,
-    twist_between,
-)
+from eslam_ros.input_pipeline import DEPTH, RGB, AcceptedFrame, InputPipeline, SkippedInput, SkipReason, StreamRestart
+from eslam_ros.pose_messages import twist_between
 
 REPO = Path(__file__).resolve().parent.parent
 PRESETS = ("fast", "replica", "tum", "icl", "scannet", "demo")

@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from eslam_core.camera import Frame
 from eslam_core.config import load_config
-from eslam_core.evaluation.trajectory import read_tum
+from eslam_core.datasets.tum import read_tum
 from eslam_ros.bag import FORWARD_CAMERA, BagOdometry, run_bag, write_bag
 from eslam_ros.conversions import msg_to_pose, pose_to_msg, stamp_to_sec
 from eslam_ros.diagnostics import ERROR, OK, WARN, StatusInputs, status_level
@@ -268,7 +268,7 @@ def test_status_level_warns_about_silent_inputs_and_a_low_rate():
 
 def test_odom_carries_the_trackers_covariance_moved_to_the_base():
     from eslam_core.tracking.information import covariance_at
-    from eslam_ros.slam_node import LOST_VARIANCE, odometry
+    from eslam_ros.pose_messages import LOST_VARIANCE, odometry
 
     camera = np.diag([1e-4, 4e-4, 9e-4, 1e-6, 1e-6, 1e-6])
     twist = (np.zeros(3), np.zeros(3))

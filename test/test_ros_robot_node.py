@@ -25,7 +25,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from eslam_core.datasets import open_dataset
 from eslam_core.datasets.synthetic import generate_scene
-from eslam_core.evaluation.trajectory import read_tum
+from eslam_core.datasets.tum import read_tum
 from eslam_ros.bag import FORWARD_CAMERA, BagOdometry, write_bag
 from eslam_ros.conversions import camera_info_from_intrinsics, depth_to_image, msg_to_pose, rgb_to_image, \
     stamp_to_sec

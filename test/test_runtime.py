@@ -23,16 +23,18 @@ import torch
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import load_config
-from eslam_core.evaluation.trajectory import Trajectory, ate, still_camera_ate
+from eslam_core.evaluation.trajectory import ate, still_camera_ate
+from eslam_core.trajectory import Trajectory
 from eslam_core.outputs.export import load_checkpoint, map_mesh
 from eslam_core.outputs.mesh_worker import PackedSnapshot
 from eslam_core.representation.field import SceneField
 from eslam_core.frames import pixel_directions_table, prepare_frame
 from eslam_core.mapping.scene_map import SceneMap, initial_extent
-from eslam_core.slam import new_keyframe
+from eslam_core.tracking.session import new_keyframe
 from eslam_core.trajectory import FrameRecord, TrackedTrajectory
 from eslam_core.runtime import RuntimeCrashed, RuntimeSetupError, make_runtime
 from eslam_core.runtime.api import RateMeter
+from eslam_core.runtime.budget import MappingBudget
 from eslam_core.runtime.multiprocess import snapshot_directory
 from eslam_core.runtime import workers
 from eslam_core.runtime.shared import STAGES, Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap, \
@@ -388,7 +390,6 @@ def test_mapper_keeps_messages_of_a_reset_it_has_not_caught_up_with(monkeypatch)
     """The race behind a lost map after reset() (seen once on a loaded machine): the tracker starts the new map
     (keyframe 0 of the new epoch) while the mapper, idle in its queue read, is still in the old epoch. That message
     must wait for the mapper to catch up, not be dropped."""
-    monkeypatch.setattr(workers, "register_optimizer_step_post_hook", lambda hook: None)  # no global hook here
     ch = workers.Channels(None, queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), HealthBoard(),
                           Control(), None)
     setup = workers.WorkerSetup(load_config("demo"), Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0), "live", 1, os.getpid(),
@@ -616,7 +617,6 @@ def test_pipelined_tracker_observes_only_what_the_map_is_fitted_to(room_sequence
 
 def _mapper_worker(monkeypatch, cfg, policy: str, **options):
     """A mapper worker in this process, on channels of plain queues (its step-control rules, without a map)."""
-    monkeypatch.setattr(workers, "register_optimizer_step_post_hook", lambda hook: None)
     ch = workers.Channels(None, queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue(),
                           HealthBoard(), Control(), None)
     setup = workers.WorkerSetup(cfg, Intrinsics(8, 6, 5.0, 5.0, 4.0, 3.0), policy, 1, os.getpid(), logging.INFO,
@@ -624,34 +624,41 @@ def _mapper_worker(monkeypatch, cfg, policy: str, **options):
     return workers.MapperWorker(setup, ch), ch
 
 
-def test_mapper_catches_up_only_when_a_newer_keyframe_waits(monkeypatch):
-    """catch_up_iterations: a mapping step may end early once a newer keyframe is pending or still in the queue
-    and the step has had its share of the budget (divided among the waiting keyframes, so that a mapper that fell
-    behind by several keyframes catches up)."""
-    mapper, ch = _mapper_worker(monkeypatch, load_config("demo"), "offline", catch_up_iterations=4)
-    assert not mapper._behind(5)  # nothing newer
+def test_the_mapper_counts_the_keyframes_waiting_in_its_queue_and_received(monkeypatch):
+    mapper, ch = _mapper_worker(monkeypatch, load_config("demo"), "offline")
+    assert mapper.keyframes_waiting() == 0
     ch.board.add(Counter.KEYFRAMES)  # the tracker queued one
-    assert not mapper._behind(3) and mapper._behind(4)
+    assert mapper.keyframes_waiting() == 1
     ch.board.add(Counter.KEYFRAMES_RECEIVED)  # taken off the queue...
-    assert not mapper._behind(4)
+    assert mapper.keyframes_waiting() == 0
     mapper.pending.append(object())  # ...into pending
-    assert not mapper._behind(3) and mapper._behind(4)
-    ch.board.add(Counter.KEYFRAMES)  # two waiting: half the budget each
-    assert not mapper._behind(1) and mapper._behind(2)
-    mapper.pending.extend([object(), object()])  # four waiting (one still queued): one iteration is its share
-    assert mapper._behind(1)
+    assert mapper.keyframes_waiting() == 1
 
 
-@pytest.mark.parametrize("policy", ["live", "offline"])
-def test_live_mapper_maps_on_while_no_keyframe_waits(monkeypatch, policy):
+def test_a_step_catches_up_only_when_a_newer_keyframe_waits():
+    """catch_up_iterations: a mapping step may end early once a newer keyframe waits and the step has had its share
+    of the budget (divided among the waiting keyframes, so that a mapper that fell behind by several catches up)."""
+    budget = MappingBudget.of(10, False, None, catch_up_iterations=4, keyframe_backlog=None)
+    assert not budget.behind(5, waiting=0) and not budget.stop_early(5, waiting=0)  # nothing newer
+    assert not budget.behind(3, waiting=1) and budget.behind(4, waiting=1) and budget.stop_early(4, waiting=1)
+    assert not budget.behind(1, waiting=2) and budget.behind(2, waiting=2)  # two waiting: half the budget each
+    assert budget.behind(1, waiting=4)
+    assert not MappingBudget.of(10, False, None, None, None).behind(100, waiting=5)  # no catch-up asked
+
+
+@pytest.mark.parametrize("live", [True, False])
+def test_a_live_step_maps_on_while_no_keyframe_waits(live):
     """runtime.idle_iterations: live, a step goes on past mapping.iterations into the mapper's idle time, and ends
     there once a newer keyframe waits; offline (the tracker waits for the mapper) steps keep mapping.iterations."""
-    cfg = load_config("demo", {"mapping": {"iterations": 5}, "runtime": {"idle_iterations": 12}})
-    mapper, ch = _mapper_worker(monkeypatch, cfg, policy)
-    assert mapper._step_iterations() == (12 if policy == "live" else None)
-    assert not mapper._stop_early(5) and not mapper._stop_early(11)  # nothing newer: the idle time is used
-    ch.board.add(Counter.KEYFRAMES)  # the tracker queued one
-    assert not mapper._stop_early(4) and mapper._stop_early(5)
+    budget = MappingBudget.of(5, live, idle_iterations=12, catch_up_iterations=None, keyframe_backlog=None)
+    assert budget.step_iterations() == (12 if live else None)
+    assert not budget.stop_early(5, waiting=0) and not budget.stop_early(11, waiting=0)  # the idle time is used
+    assert not budget.stop_early(4, waiting=1) and budget.stop_early(5, waiting=1)
+
+
+@pytest.mark.parametrize("live, backlog, merged", [(True, None, 3), (False, None, 0), (False, 1, 2)])
+def test_keyframes_beyond_the_backlog_join_the_newest_ones_window(live, backlog, merged):
+    assert MappingBudget.of(5, live, None, None, backlog).merged(4) == merged
 
 
 def test_a_mapping_step_runs_the_iterations_it_is_given(room_sequence):
@@ -664,7 +671,7 @@ def test_a_mapping_step_runs_the_iterations_it_is_given(room_sequence):
     scene.warm_up()
     done = []
     scene.map_newest(lambda it: done.append(it) or False, iterations=7)
-    assert done == list(range(1, 7))  # asked after every iteration but the last
+    assert done == list(range(1, 8))  # called after every iteration
 
 
 @pytest.mark.parametrize("lag", [None, 1])

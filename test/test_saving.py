@@ -22,8 +22,9 @@ import trimesh
 from eslam_core.cli import main
 from eslam_core.config import load_config, save_config
 from eslam_core.datasets.synthetic import default_intrinsics
-from eslam_core.evaluation.trajectory import Trajectory, read_tum
-from eslam_core.outputs.atomic import OutputWriteError, write_atomic
+from eslam_core.datasets.tum import read_tum
+from eslam_core.trajectory import Trajectory
+from eslam_core.atomic import OutputWriteError, write_atomic
 from eslam_core.outputs.export import save_checkpoint, save_trajectory
 from eslam_core.outputs.mesh import save_ply
 from eslam_core.runtime.saving import SavingMixin

@@ -114,8 +114,8 @@ def test_joint_pose_switch(room_sequence, joint_poses):
                                "tracking": {"iterations": 3}})
     slam = SLAM(cfg, room_sequence.intrinsics)
     tracked = {}  # frame -> the pose tracking gave it, before mapping
-    track = slam.frontend.tracker.track
-    slam.frontend.tracker.track = lambda field, frame, *args, **kw: tracked.setdefault(frame.index, track(field, frame, *args,
+    track = slam.tracking.frontend.tracker.track
+    slam.tracking.frontend.tracker.track = lambda field, frame, *args, **kw: tracked.setdefault(frame.index, track(field, frame, *args,
                                                                                                    **kw))
     for i in range(9):
         slam.step(room_sequence[i])
@@ -129,11 +129,11 @@ def test_diverged_tracking_keeps_the_prediction(room_sequence, caplog):
     """A tracker that returns a non-finite pose must not end the run with an unwritable trajectory: the frame keeps
     the pose it was predicted at (and counts as lost)."""
     from eslam_core.slam import SLAM
-    from eslam_core.tracking.render_tracker import TrackingResult
+    from eslam_core.tracking.result import TrackingResult
 
     cfg = load_config("demo", {"mapping": {"first_iterations": 10, "iterations": 2}, "tracking": {"iterations": 2}})
     slam = SLAM(cfg, room_sequence.intrinsics)
-    track = slam.frontend.tracker.track
+    track = slam.tracking.frontend.tracker.track
     predicted = {}
 
     def diverging(field, frame, init, *args, **kw):
@@ -142,7 +142,7 @@ def test_diverged_tracking_keeps_the_prediction(room_sequence, caplog):
             return TrackingResult(torch.full((4, 4), float("nan")), float("nan"), 0)
         return track(field, frame, init, *args, **kw)
 
-    slam.frontend.tracker.track = diverging
+    slam.tracking.frontend.tracker.track = diverging
     results = [slam.step(room_sequence[i]) for i in range(4)]
     poses = slam.trajectory.poses()
     assert np.isfinite(poses).all()
@@ -191,13 +191,14 @@ def test_mapping_draws_only_usable_pixels(usable_fraction):
 
 
 def test_mapping_step_can_end_early(room_sequence):
-    """SLAM.stop_mapping_early (the pipelined mapper's catch-up) ends a regular mapping step once it says so."""
+    """SLAM.after_mapping_iteration (the runtimes' per-iteration callback) ends a regular mapping step once it says
+    so; the warm-up runs all its iterations whatever it says."""
     from eslam_core.slam import SLAM
 
     cfg = load_config("demo", {"mapping": {"first_iterations": 20, "iterations": 10}, "tracking": {"iterations": 2}})
     slam = SLAM(cfg, room_sequence.intrinsics)
     asked = []
-    slam.stop_mapping_early = lambda done: asked.append(done) or done >= 3
+    slam.after_mapping_iteration = lambda done: asked.append(done) or done >= 3
     steps = []
     hook = register_optimizer_step_post_hook(lambda opt, args, kw: steps.append(1) if opt.defaults["fused"] else None)
     try:
@@ -206,4 +207,4 @@ def test_mapping_step_can_end_early(room_sequence):
     finally:
         hook.remove()
     assert len(steps) == 20 + 3  # mapping's optimiser is the fused Adam (the rendering tracker's is not)
-    assert asked == [1, 2, 3]
+    assert asked == list(range(1, 21)) + [1, 2, 3]

@@ -10,7 +10,8 @@ from eslam_core.frames import pixel_directions_table, prepare_frame
 from eslam_core.geometry import depth_points_world, rotation_angle_deg, so3_exp
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.mapper import Mapper
-from eslam_core.tracking.render_tracker import Tracker, constant_velocity, draw_in_extent, outlier_mask
+from eslam_core.mapping.extent import draw_in_extent
+from eslam_core.tracking.render_tracker import Tracker, constant_velocity, outlier_mask
 
 
 def axis_angle(axis, deg):

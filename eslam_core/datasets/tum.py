@@ -17,7 +17,8 @@ from typing import Optional
 import numpy as np
 
 from eslam_core.camera import Intrinsics
-from eslam_core.geometry import quaternion_xyzw_to_matrix
+from eslam_core.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
+from eslam_core.trajectory import Trajectory, TrajectoryError
 from eslam_core.datasets.base import (
     DatasetError,
     FrameRecord,
@@ -311,3 +312,38 @@ class ICLNUIMDataset(TUMDataset):
                 f"keep the one of this sequence, or copy it to groundtruth.txt"
             )
         return freiburg[0] if freiburg else None
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# TUM trajectory files of `Trajectory`s (the product's trajectory output and the files the evaluation reads)
+
+
+def read_tum(path: Path | str) -> Trajectory:
+    """Read a TUM trajectory file (`timestamp tx ty tz qx qy qz qw` per line, `#` comments, spaces or commas).
+
+    The format has one reader, `read_tum_trajectory`; its errors become TrajectoryErrors.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise TrajectoryError(f"trajectory file not found: {path}")
+    try:
+        timestamps, poses = read_tum_trajectory(path)
+    except DatasetError as error:
+        raise TrajectoryError(str(error)) from None
+    if not len(timestamps):
+        raise TrajectoryError(f"{path} contains no poses (expected lines 'timestamp tx ty tz qx qy qz qw')")
+    return Trajectory(timestamps, poses)
+
+
+def write_tum(path: Path | str, trajectory: Trajectory) -> Path:
+    """Write a TUM trajectory file; returns its path."""
+    path = Path(path)
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    for timestamp, pose in zip(trajectory.timestamps, trajectory.poses):
+        q = matrix_to_quaternion_xyzw(pose[:3, :3])
+        t = pose[:3, 3]
+        lines.append(
+            f"{timestamp:.6f} {t[0]:.9f} {t[1]:.9f} {t[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
+        )
+    path.write_text("\n".join(lines) + "\n")
+    return path

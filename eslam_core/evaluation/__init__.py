@@ -8,7 +8,7 @@
   (imported on demand: `from eslam_core.evaluation.report import evaluate_run`).
 Culling of meshes to the observed surface lives in eslam_core.outputs.culling (mesh extraction uses it too).
 """
-from eslam_core.evaluation.consistency import (
+from eslam_core.mapping.consistency import (
     ConsistencyResult,
     KeyframeConsistency,
     PairConsistency,
@@ -26,18 +26,9 @@ from eslam_core.evaluation.reconstruction import (
     reconstruction_metrics,
     sample_surface,
 )
-from eslam_core.evaluation.trajectory import (
-    AteResult,
-    RpeResult,
-    Trajectory,
-    TrajectoryError,
-    associate,
-    ate,
-    read_tum,
-    rpe,
-    umeyama_alignment,
-    write_tum,
-)
+from eslam_core.datasets.tum import read_tum, write_tum
+from eslam_core.evaluation.trajectory import associate, ate, AteResult, rpe, RpeResult, umeyama_alignment
+from eslam_core.trajectory import Trajectory, TrajectoryError
 
 __all__ = [
     "AteResult",

@@ -27,7 +27,7 @@ import yaml
 
 from eslam_core.camera import Intrinsics
 from eslam_core.outputs.culling import keep_visible_faces, visible_mask
-from eslam_core.evaluation.consistency import (
+from eslam_core.mapping.consistency import (
     FAR_FRAMES,
     NEAR_FRAMES,
     ConsistencyResult,
@@ -36,7 +36,9 @@ from eslam_core.evaluation.consistency import (
 )
 from eslam_core.evaluation.depth_l1 import depth_l1
 from eslam_core.evaluation.reconstruction import check_mesh, icp_align, load_mesh, reconstruction_metrics
-from eslam_core.evaluation.trajectory import Trajectory, associate, ate, path_length, read_tum, rpe
+from eslam_core.datasets.tum import read_tum
+from eslam_core.evaluation.trajectory import associate, ate, path_length, rpe
+from eslam_core.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

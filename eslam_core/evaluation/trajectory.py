@@ -6,62 +6,16 @@
   metres along the ground-truth path); it measures drift and needs no alignment.
 
 Everything here is in metres and radians internally; reports convert to cm and degrees.
-Trajectory files use the TUM format: `timestamp tx ty tz qx qy qz qw`, camera-to-world.
+The trajectories compared are `eslam_core.trajectory.Trajectory`s, read from TUM files by `datasets/tum.py`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Union
 
 import numpy as np
 
-from eslam_core.datasets.base import DatasetError
-from eslam_core.datasets.tum import associate_timestamps, read_tum_trajectory
-from eslam_core.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
-
-PathLike = Union[str, Path]
-
-
-class TrajectoryError(ValueError):
-    """A trajectory that cannot be read or compared (malformed file, non-finite pose, no common timestamps)."""
-
-
-@dataclass(frozen=True, eq=False)
-class Trajectory:
-    timestamps: np.ndarray  # (N,) seconds (or frame numbers for data sets without a clock)
-    poses: np.ndarray  # (N, 4, 4) camera-to-world
-
-    def __post_init__(self) -> None:
-        timestamps = np.asarray(self.timestamps, dtype=np.float64)
-        poses = np.asarray(self.poses, dtype=np.float64)
-        if timestamps.ndim != 1 or poses.shape != (len(timestamps), 4, 4):
-            raise TrajectoryError(
-                f"a trajectory needs N timestamps and N 4x4 poses, got {timestamps.shape} and {poses.shape}"
-            )
-        bad = np.flatnonzero(~(np.isfinite(poses).all(axis=(1, 2)) & np.isfinite(timestamps)))
-        if bad.size:
-            raise TrajectoryError(
-                f"pose at timestamp {float(timestamps[bad[0]])!r} is not finite (nan/inf); {bad.size} such poses: "
-                "the estimator lost track there, remove or fix those poses"
-            )
-        object.__setattr__(self, "timestamps", timestamps)
-        object.__setattr__(self, "poses", poses)
-
-    def __len__(self) -> int:
-        return len(self.timestamps)
-
-    @property
-    def positions(self) -> np.ndarray:
-        return self.poses[:, :3, 3]
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# Quaternions (x, y, z, w), Hamilton convention as in the TUM tools.
-
-
-quaternion_to_rotation = quaternion_xyzw_to_matrix
-rotation_to_quaternion = matrix_to_quaternion_xyzw
+from eslam_core.datasets.tum import associate_timestamps
+from eslam_core.trajectory import Trajectory, TrajectoryError
 
 
 def rotation_angle(rotation: np.ndarray) -> np.ndarray:
@@ -75,41 +29,6 @@ def rotation_angle(rotation: np.ndarray) -> np.ndarray:
     axis_sin = np.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
     sin = 0.5 * np.linalg.norm(axis_sin, axis=-1)
     return np.arctan2(sin, cos)
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# TUM files
-
-
-def read_tum(path: PathLike) -> Trajectory:
-    """Read a TUM trajectory file (`timestamp tx ty tz qx qy qz qw` per line, `#` comments, spaces or commas).
-
-    The format has one reader, `eslam_core.datasets.tum.read_tum_trajectory`; its errors become TrajectoryErrors.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise TrajectoryError(f"trajectory file not found: {path}")
-    try:
-        timestamps, poses = read_tum_trajectory(path)
-    except DatasetError as error:
-        raise TrajectoryError(str(error)) from None
-    if not len(timestamps):
-        raise TrajectoryError(f"{path} contains no poses (expected lines 'timestamp tx ty tz qx qy qz qw')")
-    return Trajectory(timestamps, poses)
-
-
-def write_tum(path: PathLike, trajectory: Trajectory) -> Path:
-    """Write a TUM trajectory file; returns its path."""
-    path = Path(path)
-    lines = ["# timestamp tx ty tz qx qy qz qw"]
-    for timestamp, pose in zip(trajectory.timestamps, trajectory.poses):
-        q = rotation_to_quaternion(pose[:3, :3])
-        t = pose[:3, 3]
-        lines.append(
-            f"{timestamp:.6f} {t[0]:.9f} {t[1]:.9f} {t[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
-        )
-    path.write_text("\n".join(lines) + "\n")
-    return path
 
 
 # ---------------------------------------------------------------------------------------------------------------

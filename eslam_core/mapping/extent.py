@@ -61,3 +61,26 @@ def grown_extent(extent: np.ndarray, points: torch.Tensor, step: float, margin: 
             side = 0 if grow_lo >= grow_hi else 1
             new[side, axis] += step if side == 0 else -step
     return new, int(outside_mask(points, new).sum())
+
+
+def draw_in_extent(candidates: torch.Tensor, n: int, world_points, extent: np.ndarray | None
+                   ) -> tuple[torch.Tensor, float]:
+    """Up to n pixels drawn at random (with replacement) from `candidates` whose depth point (`world_points(pixels)`
+    at the starting pose) lies inside the map's extent (the field knows nothing beyond it), and the fraction of the
+    candidates inside, estimated from the draw. Testing only drawn pixels costs 2n points instead of every pixel
+    (12 ms for a 640x480 frame on one core); a frame mostly outside gets a second, larger draw (up to 16n)."""
+    if len(candidates) == 0:
+        return candidates, 0.0
+
+    def draw(k: int) -> torch.Tensor:
+        return candidates[torch.randint(len(candidates), (k,), device=candidates.device)]  # (randperm: 2 ms)
+
+    first = draw(2 * n)
+    if extent is None:
+        return first[:n], 1.0
+    inside = ~outside_mask(world_points(first), extent)
+    share, kept = float(inside.float().mean()), first[inside]
+    if 0 < len(kept) < n:
+        more = draw(min(16 * n, int(1.2 * (n - len(kept)) / share) + 1))
+        kept = torch.cat([kept, more[~outside_mask(world_points(more), extent)]])
+    return kept[:n], share

@@ -69,10 +69,11 @@ class Mapper:
 
     @denormals_flushed()  # see cpu.py
     def map(self, field: SceneField, keyframes, window: list[int], first: bool = False,
-            optimise_poses: bool = False, stop_early: Optional[Callable[[int], bool]] = None,
+            optimise_poses: bool = False, after_iteration: Optional[Callable[[int], bool]] = None,
             iterations: Optional[int] = None) -> MappingResult:
-        """`stop_early(iterations done)`, asked after every iteration, may end the step before its iteration count
-        (the pipelined mapper does when it falls behind the tracker). `iterations`: that count, if not the config's."""
+        """`after_iteration(iterations done)`, called after every iteration, ends the step before its iteration count
+        by returning True (the pipelined mapper does when it falls behind the tracker); it is also where the caller
+        publishes the map mid-step or abandons the step by raising. `iterations`: the count, if not the config's."""
         mc = self.cfg.mapping
         device = field.device
         self._on(device)
@@ -94,19 +95,18 @@ class Mapper:
             groups.append({"params": field.plane_parameters(), "lr": mc.lr_planes * lr_factor})
         optim = torch.optim.Adam(groups, betas=(0.9, 0.999), fused=True)
         with self.plane_adam.fresh(planes if sparse else [], mc.lr_planes * lr_factor):
-            last_loss = self._iterate(field, keyframes, window, poses, pose_params, iterations, optim, stop_early)
+            last_loss = self._iterate(field, keyframes, window, poses, pose_params, iterations, optim,
+                                      after_iteration)
         refined = {i: params_to_pose(*pose_params[i]).detach().cpu() for i in free}
         return MappingResult(float("nan") if last_loss is None else float(last_loss), refined)
 
     def _iterate(self, field: SceneField, keyframes, window: list[int], poses: dict, pose_params: dict,
-                 iterations: int, optim: torch.optim.Optimizer, stop_early) -> Optional[torch.Tensor]:
+                 iterations: int, optim: torch.optim.Optimizer, after_iteration) -> Optional[torch.Tensor]:
         """The step's iterations; returns the last loss (None if none ran)."""
         mc, device = self.cfg.mapping, field.device
         per_frame = max(1, mc.rays // len(window))
         last_loss = None
         for it in range(iterations):
-            if it > 0 and stop_early is not None and stop_early(it):
-                break
             drawn, frame_pix, d_gt, rgb_gt = [], [], [], []  # host: (window position, pixels) per frame
             for i in window:
                 kf = keyframes[i]
@@ -139,4 +139,6 @@ class Mapper:
             optim.step()
             self.plane_adam.step()
             last_loss = loss.detach()
+            if after_iteration is not None and after_iteration(it + 1):
+                break
         return last_loss

@@ -22,6 +22,7 @@ from eslam_core.cpu import flat_nonzero
 from eslam_core.device import resolve_device
 from eslam_core.frames import PreparedFrame
 from eslam_core.geometry import depth_points_world
+from eslam_core.mapping.consistency import keyframe_consistency
 from eslam_core.mapping.extent import estimate_bound, grow_to_multiple, grown_extent, outside_mask
 from eslam_core.mapping.keyframes import Keyframe, KeyframeStore, select_window
 from eslam_core.mapping.mapper import Mapper
@@ -175,17 +176,20 @@ class SceneMap:
                 self.keyframes[i].pose = torch.as_tensor(pose, dtype=torch.float32)
 
     # -------------------------------------------------------------------------------------------------- mapping
-    def warm_up(self) -> MappingStep:
-        """The first keyframe mapped alone, pose fixed, for `mapping.first_iterations` (paper Sec. 3.4)."""
-        res = self.mapper.map(self.field, self.keyframes, [0], first=True)
+    def warm_up(self, after_iteration: Optional[Callable[[int], object]] = None) -> MappingStep:
+        """The first keyframe mapped alone, pose fixed, for `mapping.first_iterations` (paper Sec. 3.4), never cut
+        short: `after_iteration` (see Mapper.map) is called for its effects, its answer is not asked."""
+        res = self.mapper.map(self.field, self.keyframes, [0], first=True,
+                              after_iteration=None if after_iteration is None else
+                              lambda done: after_iteration(done) and False)
         self.version += 1
         self.observed.mapped(1)
         return MappingStep(res.loss, {})
 
-    def map_newest(self, stop_early: Optional[Callable[[int], bool]] = None,
+    def map_newest(self, after_iteration: Optional[Callable[[int], bool]] = None,
                    iterations: Optional[int] = None) -> MappingStep:
-        """One mapping step for the newest keyframe over its window (`iterations`: if not mapping.iterations);
-        refined poses are written back."""
+        """One mapping step for the newest keyframe over its window (`iterations`: if not mapping.iterations;
+        `after_iteration`: see Mapper.map); refined poses are written back."""
         current = len(self.keyframes) - 1
         kf = self.keyframes[current]
         d = kf.depth_image().reshape(-1)
@@ -197,7 +201,7 @@ class SceneMap:
         mc = self.cfg.mapping
         optimise_poses = mc.joint_poses and self.keyframes.made > mc.joint_poses_after
         res = self.mapper.map(self.field, self.keyframes, window, first=False, optimise_poses=optimise_poses,
-                              stop_early=stop_early, iterations=iterations)
+                              after_iteration=after_iteration, iterations=iterations)
         self.version += 1
         refined = {}
         for i, pose in res.refined.items():
@@ -215,10 +219,8 @@ class SceneMap:
 
     def consistency(self):
         """The depth consistency of the newest keyframe with older ones under the current poses (a
-        KeyframeConsistency, evaluation/consistency.py): needs no ground truth, so a robot can watch its own drift.
+        KeyframeConsistency, mapping/consistency.py): needs no ground truth, so a robot can watch its own drift.
         Reduced keyframes are left out (too coarse to warp)."""
-        from eslam_core.evaluation.consistency import keyframe_consistency
-
         self._consistency_scored_at = self.keyframes.made
         full = [kf for kf in self.keyframes if kf.stride == 1]
         return keyframe_consistency(_DepthImages(full), [kf.pose for kf in full], self.intr)

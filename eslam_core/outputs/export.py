@@ -8,11 +8,12 @@ import torch
 import trimesh
 
 from eslam_core.outputs.culling import visible_mask
-from eslam_core.evaluation.trajectory import Trajectory, write_tum
+from eslam_core.datasets.tum import write_tum
+from eslam_core.trajectory import Trajectory
 from eslam_core.mapping.scene_map import surface_points
-from eslam_core.outputs.atomic import atomic_output, write_atomic
+from eslam_core.atomic import atomic_output, write_atomic
 from eslam_core.outputs.mesh import MeshSettings, extract_mesh
-from eslam_core.outputs.map_file import CheckpointError, read_checkpoint
+from eslam_core.map_file import CheckpointError, read_checkpoint
 from eslam_core.slam import CHECKPOINT_VERSION, SLAM
 from eslam_core.tracking.information import PoseCovariance
 

@@ -31,7 +31,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from skimage.measure import marching_cubes
 
-from eslam_core.outputs.atomic import write_atomic
+from eslam_core.atomic import write_atomic
 
 SdfFn = Callable[[torch.Tensor], torch.Tensor]  # (N, 3) float32 world points -> (N,) normalised SDF
 ColorFn = Callable[[torch.Tensor], torch.Tensor]  # (N, 3) float32 world points -> (N, 3) RGB in [0, 1]

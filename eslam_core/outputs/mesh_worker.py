@@ -26,8 +26,6 @@ import logging
 import multiprocessing
 import os
 import pickle
-import signal
-import threading
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -38,7 +36,8 @@ import torch
 import torch.multiprocessing  # noqa: F401 - registers the reductions that send a shared tensor as a handle
 
 from eslam_core.camera import Intrinsics
-from eslam_core.cpu import lower_priority, name_process
+from eslam_core.child_process import become_child, spawned_with_stop_signals_blocked
+from eslam_core.cpu import lower_priority
 from eslam_core.outputs.mesh import MeshSettings
 from eslam_core.outputs.mesh_blocks import (BlockLayout, IncrementalMesher, Key, MapView, map_view, thinning_stride,
                                             triangle_soup)
@@ -49,7 +48,6 @@ log = logging.getLogger("eslam")
 # thinned like the whole mesh is over its budget.
 MAX_BLOCK_TRIANGLES = 65536
 START_TIMEOUT_S = 60.0
-_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
 
 
 class MesherCrashed(RuntimeError):
@@ -228,25 +226,10 @@ class _Worker:
                        list(snapshot.keyframe_ids), snapshot.poses, [self.depths[k] for k in snapshot.keyframe_ids])
 
 
-def _exit_with_parent(parent_pid: int) -> None:
-    """A thread that ends the process once its parent is gone (even SIGKILLed: the pipe alone would not tell a
-    process blocked in recv)."""
-    def watch() -> None:
-        while os.getppid() == parent_pid:
-            time.sleep(1.0)
-        os._exit(0)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
-
-
 def _serve(connection, setup: _Setup) -> None:
     """The mesh process: jobs in, MeshUpdates out, until told to stop or the caller is gone."""
-    for sig in _STOP_SIGNALS:  # Ctrl-C reaches the whole process group; the caller decides when this one stops
-        signal.signal(sig, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
-    _exit_with_parent(setup.parent_pid)
+    become_child("mesh", setup.parent_pid)
     lower_priority(setup.nice)
-    name_process("eslam-mesh")
     torch.set_num_threads(1)
     worker = _Worker(setup)
     connection.send("ready")
@@ -298,12 +281,8 @@ class BackgroundMesher:
         ctx = multiprocessing.get_context("spawn")
         self._connection, child = ctx.Pipe()
         self._process = ctx.Process(target=_serve, args=(child, self.setup), name="eslam-mesher", daemon=True)
-        # The child starts with the stop signals blocked, until it ignores them (see _serve).
-        previous = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
-        try:
+        with spawned_with_stop_signals_blocked():
             self._process.start()
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
         lower_priority(self.setup.nice, self._process.pid)  # now, before it spends seconds importing torch
         child.close()
         try:

@@ -8,8 +8,9 @@
                 ...
     rt.save_checkpoint("run/checkpoint.pt")
 
-See api.py for the API, inprocess.py (workers=1) and multiprocess.py / workers.py / shared.py (workers=2).
+See api.py for the API, factory.py for `make_runtime`, inprocess.py (workers=1) and multiprocess.py / workers.py / shared.py (workers=2).
 """
-from eslam_core.runtime.api import POLICIES, Health, PoseUpdate, RuntimeCrashed, RuntimeSetupError, SLAMRuntime, make_runtime
+from eslam_core.runtime.api import POLICIES, Health, PoseUpdate, RuntimeCrashed, RuntimeSetupError, SLAMRuntime
+from eslam_core.runtime.factory import make_runtime
 
 __all__ = ["POLICIES", "Health", "PoseUpdate", "RuntimeCrashed", "RuntimeSetupError", "SLAMRuntime", "make_runtime"]

@@ -14,7 +14,6 @@ Input policies decide what happens when frames arrive faster than they can be tr
 """
 from __future__ import annotations
 
-import inspect
 import math
 import resource
 import time
@@ -26,10 +25,8 @@ from typing import Optional, Protocol, runtime_checkable
 import numpy as np
 
 from eslam_core.camera import Frame, Intrinsics
-from eslam_core.config import Config
 
 POLICIES = ("offline", "live")
-WORKER_CHOICES = (1, 2)
 
 
 class RuntimeSetupError(ValueError):
@@ -86,7 +83,7 @@ class Health:
     keyframes_kept: int = 0
     peak_memory_mb: dict = field(default_factory=dict)
     # Depth consistency of the newest keyframe with older ones under the current poses (needs no ground truth;
-    # evaluation/consistency.py): median |depth residual| in mm and the share within 3 cm; NaN before two keyframes.
+    # mapping/consistency.py): median |depth residual| in mm and the share within 3 cm; NaN before two keyframes.
     consistency_mm: float = math.nan
     consistency_agree: float = math.nan
     # Where the workers' time goes: milliseconds per event of each stage (runtime/shared.py: STAGES; multi-process).
@@ -200,32 +197,3 @@ class LatencyMeter:
     @property
     def mean_ms(self) -> float:
         return 1000.0 * float(np.mean(self.recent)) if self.recent else 0.0
-
-
-# ---------------------------------------------------------------------------------------------------------- factory
-
-def make_runtime(cfg: Config, intrinsics: Intrinsics, workers: int = 2, policy: str = "offline", *,
-                 threads: Optional[int] = None, **options) -> SLAMRuntime:
-    """A runtime for frames of `intrinsics` (the camera as the frames arrive, before `camera.image_scale`).
-
-    workers=1: lock-step SLAM on a background thread; workers=2: tracking and mapping processes. `threads`: torch
-    threads per worker (default: `run.threads` from the config, or the machine's cores split between the workers).
-    The implementation's tuning comes from the config's `runtime` section (`capacity` for both; for workers=2
-    `publish_every`, `lend_threads`, `keyframe_backlog`, `catch_up_iterations`); `options` override it. Call
-    `start()` (or use it as a context manager) before submitting frames.
-    """
-    check_policy(policy)
-    if workers == 1:
-        from eslam_core.runtime.inprocess import InProcessRuntime as Runtime
-    elif workers == 2:
-        from eslam_core.runtime.multiprocess import MultiProcessRuntime as Runtime
-    else:
-        raise RuntimeSetupError(f"workers must be one of {WORKER_CHOICES} (1 = lock-step in this process, 2 = a "
-                                f"tracking and a mapping process), got {workers!r}")
-    accepted = inspect.signature(Runtime.__init__).parameters
-    tuning = {k: v for k, v in asdict(cfg.runtime).items() if k in accepted}
-    try:
-        return Runtime(cfg, intrinsics, policy=policy, threads=threads, **{**tuning, **options})
-    except TypeError as e:
-        raise RuntimeSetupError(f"make_runtime(workers={workers}): {e}; the options are the keyword arguments of "
-                                f"{Runtime.__name__}") from None

@@ -6,9 +6,8 @@ and, every `mapping.every` frames, maps, exactly as `eslam run --workers 1` does
 up to date after every step, so `trajectory()` never waits for the step in progress; checkpoints and meshes are
 made from a copy of the SLAM state taken between two steps.
 
-"Stop now" (`close(drain=False)`, `reset()`) interrupts the step in progress at its next optimiser iteration,
-through a torch optimiser hook that only acts on the SLAM thread, so that a long warm-up does not hold up a
-shutdown. torch's thread count is process-wide: `threads` (or `run.threads`) sets it for the whole process.
+"Stop now" (`close(drain=False)`, `reset()`) abandons the mapping step in progress after its current iteration
+(`SLAM.after_mapping_iteration`), so that a long warm-up does not hold up a shutdown. torch's thread count is process-wide: `threads` (or `run.threads`) sets it for the whole process.
 """
 from __future__ import annotations
 
@@ -21,15 +20,15 @@ from typing import Optional
 
 import numpy as np
 import torch
-from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
 from eslam_core.slam import SLAM, loaded_slam
 from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
-from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, \
-    check_frame, check_policy, peak_rss_mb
+from eslam_core.runtime.api import Health, PoseUpdate, RuntimeCrashed, RuntimeSetupError, check_frame, check_policy, \
+    peak_rss_mb
+from eslam_core.runtime.parent_state import ParentState
 
 log = logging.getLogger("eslam")
 
@@ -37,7 +36,7 @@ DEFAULT_CAPACITY = 8
 
 
 class _StepInterrupted(Exception):
-    """Raised inside an optimiser step of the SLAM thread when the caller asked to stop now or to reset."""
+    """Raised after a mapping iteration of the SLAM thread when the caller asked to stop now or to reset."""
 
 
 class InProcessRuntime(SavingMixin):
@@ -55,12 +54,11 @@ class InProcessRuntime(SavingMixin):
         self._inputs: deque = deque()
         self._closing = self._stop_now = False
         self._slam_lock = threading.Lock()  # held for a whole step: the SLAM object is consistent between steps
-        self._lock = threading.Lock()  # guards what the caller reads: mirror, updates, meters
+        self._lock = threading.Lock()  # guards what the caller reads: the parent state
         self._posed = threading.Condition(self._lock)  # a new pose update (or a crash)
         self._started = self._closed = False
         self._crash: Optional[RuntimeCrashed] = None
         self._thread: Optional[threading.Thread] = None
-        self._hook = None
         self._epoch = 0
         self._step_epoch = 0  # the epoch of the step in progress
         self._counts = dict(received=0, tracked=0, dropped=0, mapping_steps=0)  # since start (over resets)
@@ -69,12 +67,11 @@ class InProcessRuntime(SavingMixin):
     def _new_map(self) -> None:
         self.slam = loaded_slam(self.checkpoint, self.cfg, self.intrinsics) if self.checkpoint else \
             SLAM(self.cfg, self.intrinsics)
+        self.slam.after_mapping_iteration = self._after_iteration
         self.checkpoint = None
         # what the caller reads while a step runs
-        self._mirror = TrackedTrajectory.from_state_dict(self.slam.trajectory.state_dict())
+        self._parent = ParentState(TrackedTrajectory.from_state_dict(self.slam.trajectory.state_dict()))
         self._memory = {"map_bytes": 0, "keyframe_bytes": 0, "keyframes_kept": 0}
-        self._updates: list[PoseUpdate] = []
-        self._tracking_rate, self._mapping_rate, self._latency = RateMeter(), RateMeter(), LatencyMeter()
 
     # ------------------------------------------------------------------------------------------------ the API
     def start(self) -> None:
@@ -84,7 +81,6 @@ class InProcessRuntime(SavingMixin):
         self._started = True
         if self.threads:
             torch.set_num_threads(self.threads)
-        self._hook = register_optimizer_step_post_hook(self._after_iteration)
         self._thread = threading.Thread(target=self._run, name="eslam-slam", daemon=True)
         self._thread.start()
 
@@ -120,29 +116,25 @@ class InProcessRuntime(SavingMixin):
         if self._crash is not None and not self._closed:
             raise self._crash
         with self._posed:
-            if timeout > 0 and not self._updates and self._started and not self._closed:
+            if timeout > 0 and not self._parent.updates and self._started and not self._closed:
                 self._posed.wait(timeout)
                 if self._crash is not None:
                     raise self._crash
-            out, self._updates = self._updates, []
-        return out
+            return self._parent.take_updates()
 
     def trajectory(self, max_poses: Optional[int] = None) -> tuple[np.ndarray, np.ndarray]:
         if self._closed:
             return self.slam.trajectory.timestamps(max_poses), self.slam.trajectory.poses(max_poses)
         with self._lock:
-            return self._mirror.timestamps(max_poses), self._mirror.poses(max_poses)
+            return self._parent.trajectory.timestamps(max_poses), self._parent.trajectory.poses(max_poses)
 
     def health(self) -> Health:
         with self._cond:
             pending, c = len(self._inputs), dict(self._counts)
         with self._lock:
-            last = self._mirror.records[-1] if len(self._mirror) else None
-            return Health(c["received"], c["tracked"], c["dropped"], self._mirror.keyframes, self._tracking_rate.rate(),
-                          self._mapping_rate.rate(), pending, 0, c["mapping_steps"], self._latency.last_ms,
-                          self._latency.mean_ms, tracking_quality=last.quality if last else 1.0,
-                          tracking_lost=last.lost if last else False, **self._memory,
-                          peak_memory_mb={"process": peak_rss_mb()})
+            return Health(frames_received=c["received"], frames_tracked=c["tracked"], frames_dropped=c["dropped"],
+                          input_queue_depth=pending, keyframe_queue_depth=0, map_version=c["mapping_steps"],
+                          **self._parent.health_figures(), **self._memory, peak_memory_mb={"process": peak_rss_mb()})
 
     def _measure_map(self, epoch: int) -> None:
         """The map's memory and keyframe consistency for the health (computed outside the caller's lock)."""
@@ -202,7 +194,7 @@ class InProcessRuntime(SavingMixin):
                 self._stop_now_locked()
                 self._cond.notify_all()
             self._thread.join()
-        self._hook.remove()
+        self.slam.after_mapping_iteration = None  # the final state, handed out by snapshot(), is the caller's now
         if self._crash is not None:
             raise self._crash
 
@@ -256,15 +248,9 @@ class InProcessRuntime(SavingMixin):
                 done = time.monotonic()
                 with self._lock:
                     if epoch == self._epoch:  # else a reset came in after the step: it belongs to the old map
-                        self._mirror.append(record, res.anchor)
-                        self._mirror.refine(res.refined)
-                        self._updates.append(PoseUpdate(res.index, frame.timestamp, res.pose, res.tracking_loss,
-                                                        res.keyframe, done - arrival, res.quality, res.lost,
-                                                        res.degraded, res.covariance))
-                        self._tracking_rate.tick(done)
-                        self._latency.add(done - arrival)
+                        self._parent.posed(record, res.anchor, res.keyframe, done - arrival, done)
                         if res.keyframe:
-                            self._mapping_rate.tick(done)
+                            self._parent.mapped(res.refined, done)
                         self._posed.notify_all()
                 if res.keyframe:  # after the pose is out: the consistency score takes tens of ms
                     self._measure_map(epoch)
@@ -280,6 +266,7 @@ class InProcessRuntime(SavingMixin):
             with self._posed:
                 self._posed.notify_all()
 
-    def _after_iteration(self, optimizer, args, kwargs) -> None:
-        if threading.current_thread() is self._thread and (self._stop_now or self._step_epoch != self._epoch):
+    def _after_iteration(self, iterations: int) -> bool:
+        if self._stop_now or self._step_epoch != self._epoch:
             raise _StepInterrupted
+        return False

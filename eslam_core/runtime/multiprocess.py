@@ -49,15 +49,17 @@ import torch
 import torch.multiprocessing as tmp
 
 from eslam_core.camera import Frame, Intrinsics
+from eslam_core.child_process import EXIT_ORPHANED, spawned_with_stop_signals_blocked
 from eslam_core.config import Config, RuntimeConfig
 from eslam_core.frames import working_images, working_intrinsics
 from eslam_core.slam import SLAM, loaded_trajectory
 from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
-from eslam_core.runtime.api import Health, LatencyMeter, PoseUpdate, RateMeter, RuntimeCrashed, RuntimeSetupError, \
+from eslam_core.runtime.api import Health, PoseUpdate, RuntimeCrashed, RuntimeSetupError, \
     check_frame, check_policy, peak_rss_mb
+from eslam_core.runtime.parent_state import ParentState
 from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta, stage_profile
-from eslam_core.runtime.workers import EXIT_ORPHANED, STOP_SIGNALS, Channels, MapperFinished, MapperSnapshot, MappingReport, MeshRequest, SnapshotRequest, \
+from eslam_core.runtime.workers import Channels, MapperFinished, MapperSnapshot, MappingReport, MeshRequest, SnapshotRequest, \
     TrackedFrame, TrackerFinished, WorkerReady, WorkerSetup, mapper_main, tracker_main
 
 log = logging.getLogger("eslam")
@@ -202,13 +204,8 @@ class MultiProcessRuntime(SavingMixin):
 
     def _reset_parent_state(self, epoch: int) -> None:
         self._epoch = epoch
-        self._mirror = TrackedTrajectory.from_state_dict(self._loaded_trajectory) if epoch == 0 and \
-            self._loaded_trajectory else TrackedTrajectory()
-        self._last_quality = (1.0, False)
-        self._updates: list[PoseUpdate] = []
-        self._tracking_rate = RateMeter()
-        self._mapping_rate = RateMeter()
-        self._latency = LatencyMeter()
+        self._parent = ParentState(TrackedTrajectory.from_state_dict(self._loaded_trajectory) if epoch == 0 and
+                                   self._loaded_trajectory else None)
         self._tracker_finished = self._mapper_finished = False
         self._snapshots: dict[int, MapperSnapshot] = {}  # answers taken from the queue, by request id
 
@@ -259,11 +256,10 @@ class MultiProcessRuntime(SavingMixin):
                  self._processes["tracker"].pid, self._processes["mapper"].pid, self.threads, self.policy)
 
     def _monitor(self, error_ends: dict, spawned: threading.Event) -> None:
-        # Children inherit this thread's signal mask: they start with SIGINT / SIGTERM blocked, until they ignore them.
-        signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
         try:
-            for p in self._processes.values():
-                p.start()
+            with spawned_with_stop_signals_blocked():
+                for p in self._processes.values():
+                    p.start()
         except BaseException as e:  # noqa: BLE001 - reported to the caller as a crash
             self._set_crash(RuntimeCrashed("runtime", f"could not start the worker processes: {e}",
                                            traceback.format_exc()))
@@ -387,17 +383,9 @@ class MultiProcessRuntime(SavingMixin):
         if msg.epoch != self._epoch:
             return  # from before a reset
         if isinstance(msg, TrackedFrame):
-            r = msg.record
-            self._mirror.append(r, msg.keyframe)
-            self._last_quality = (r.quality, r.lost)
-            # The tracker's newest frame has no next keyframe to blend with: its pose is the pose as tracked.
-            self._updates.append(PoseUpdate(r.index, r.timestamp, r.tracked, r.tracking_loss, msg.keyframe,
-                                            msg.latency_s, r.quality, r.lost, r.degraded, r.covariance))
-            self._tracking_rate.tick(msg.done)
-            self._latency.add(msg.latency_s)
+            self._parent.posed(msg.record, msg.keyframe, msg.keyframe, msg.latency_s, msg.done)
         elif isinstance(msg, MappingReport):
-            self._mirror.refine(msg.refined)
-            self._mapping_rate.tick(msg.done)
+            self._parent.mapped(msg.refined, msg.done)
         elif isinstance(msg, TrackerFinished):
             self._tracker_finished = True
         elif isinstance(msg, MapperFinished):
@@ -442,12 +430,11 @@ class MultiProcessRuntime(SavingMixin):
             self._raise_if_crashed()
             self._pump()
             deadline = time.monotonic() + timeout
-            while not self._updates and time.monotonic() < deadline:  # (other messages may come first)
+            while not self._parent.updates and time.monotonic() < deadline:  # (other messages may come first)
                 self._pump(block_s=min(deadline - time.monotonic(), 0.05))
                 self._raise_if_crashed()
         with self._lock:
-            out, self._updates = self._updates, []
-        return out
+            return self._parent.take_updates()
 
     def trajectory(self, max_poses: Optional[int] = None) -> tuple[np.ndarray, np.ndarray]:
         if self._final is not None:
@@ -456,7 +443,7 @@ class MultiProcessRuntime(SavingMixin):
             self._raise_if_crashed()
             self._pump()
         with self._lock:
-            return self._mirror.timestamps(max_poses), self._mirror.poses(max_poses)
+            return self._parent.trajectory.timestamps(max_poses), self._parent.trajectory.poses(max_poses)
 
     def health(self) -> Health:
         if self._last_health is not None:
@@ -473,17 +460,11 @@ class MultiProcessRuntime(SavingMixin):
                 frames_received=int(b.get(Counter.RECEIVED)),
                 frames_tracked=int(b.get(Counter.TRACKED)),
                 frames_dropped=int(b.get(Counter.DROPPED_AT_SUBMIT) + b.get(Counter.DROPPED_BY_TRACKER)),
-                keyframes=self._mirror.keyframes,  # in the current map
-                tracking_hz=self._tracking_rate.rate(),
-                mapping_hz=self._mapping_rate.rate(),
                 input_queue_depth=self._ring.pending(),
                 keyframe_queue_depth=b.unmapped_keyframes(),
                 map_version=self._map_meta.version,
-                latency_ms_last=self._latency.last_ms,
-                latency_ms_mean=self._latency.mean_ms,
                 map_publish_ms=1000.0 * b.get(Counter.PUBLISH_SECONDS) / max(b.get(Counter.PUBLISHES), 1.0),
                 map_read_ms=1000.0 * b.get(Counter.READ_SECONDS) / max(b.get(Counter.READS), 1.0),
-                tracking_quality=self._last_quality[0], tracking_lost=self._last_quality[1],
                 map_bytes=int(b.get(Counter.MAP_BYTES)), keyframe_bytes=int(b.get(Counter.KEYFRAME_BYTES)),
                 keyframes_kept=int(b.get(Counter.KEYFRAMES_KEPT)),
                 consistency_mm=b.get(Counter.CONSISTENCY_MM) if b.get(Counter.CONSISTENCY_PAIRS) else math.nan,
@@ -492,6 +473,7 @@ class MultiProcessRuntime(SavingMixin):
                                 "mapper": b.get(Counter.MAPPER_PEAK_MB)},
                 stage_ms={row["stage"]: round(row["ms"], 2) for row in stage_profile(b.snapshot())
                           if not math.isnan(row["ms"])},
+                **self._parent.health_figures(),  # keyframes: in the current map
             )
 
     def worker_figures(self) -> dict:
@@ -508,15 +490,15 @@ class MultiProcessRuntime(SavingMixin):
         self._pump(take_turn=True)
         with self._lock:
             # (in localization every frame anchors the trajectory, and no keyframe goes to the mapper)
-            keyframes = self._mirror.keyframes if self.cfg.run.mode == "slam" else 0
-            trajectory, epoch = self._mirror.state_dict(), self._epoch
+            keyframes = self._parent.trajectory.keyframes if self.cfg.run.mode == "slam" else 0
+            trajectory, epoch = self._parent.trajectory.state_dict(), self._epoch
         path = os.path.join(self._snapshot_dir, "{}.pt")
         state = self._ask_mapper(lambda request_id: SnapshotRequest(request_id, epoch, keyframes,
                                                                     path.format(request_id)), "a snapshot of the map")
         slam = SLAM(self.cfg, self.intrinsics)
         if state is not None:  # else reset meanwhile, or nothing tracked yet
             slam.map.load_state_dict(read_snapshot(state))
-            slam.trajectory = TrackedTrajectory.from_state_dict(trajectory)
+            slam.tracking.trajectory = TrackedTrajectory.from_state_dict(trajectory)
         return slam
 
     def _ask_mapper(self, request: Callable[[int], object], what: str):

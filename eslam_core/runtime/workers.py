@@ -1,28 +1,24 @@
 """The two worker processes of the pipelined runtime: the tracker and the mapper, and what they say to each other.
 
-Tracker: takes frames from the shared frame ring and runs the lock-step schedule of `SLAM` minus mapping
-(`PipelinedTracking`): every frame is tracked against the newest map version it can see, stored relative to its
-keyframe, and every `mapping.every`-th frame becomes a keyframe that is handed to the mapper (uint8 colour and
-16-bit depth, as `Keyframe` stores them) instead of being mapped. It never waits for the mapper, except once:
-frame 1 needs the map of frame 0 (the warm-up), as in the lock-step schedule, or with `runtime.first_map_after` the
-map after that many of the warm-up's iterations. Refined keyframe poses come back
-from the mapper and move the frames tracked after those keyframes, as in `SLAM`.
+Tracker: takes frames from the shared frame ring and drives the tracking session of the lock-step `SLAM`
+(`tracking/session.py`) against a replica of the mapper's map: every frame is tracked against the newest map version
+it can see, stored relative to its keyframe, and every keyframe is handed to the mapper (uint8 colour and 16-bit
+depth, as `Keyframe` stores them) instead of being mapped. It never waits for the mapper, except once: frame 1 needs
+the map of frame 0 (the warm-up), as in the lock-step schedule, or with `runtime.first_map_after` the map after that
+many of the warm-up's iterations. The mapper's corrections (refined keyframe poses, dropped keyframes) come back and
+are applied to the session, as in `SLAM`.
 
 Mapper: owns the `SceneField`. It starts the map from keyframe 0 (bound chosen by the tracker from that frame),
-runs the warm-up, then one mapping step per keyframe (offline policy). When keyframes queue up beyond
-`keyframe_backlog` (0 under the live policy; unlimited by default offline), the older waiting ones join the window
-of the newest as its "previous keyframes" instead of getting a step of their own, so the map keeps up with the camera.
-With `catch_up_iterations`, every keyframe keeps its step, but a step ends early once newer keyframes wait, the
-sooner the more of them (`_behind`): the mapper stays within about a keyframe of the tracker. Live, with
-`runtime.idle_iterations`, a step goes on past `mapping.iterations` into the mapper's idle time until a newer keyframe
-waits (`_stop_early`). After each step (and, with `publish_every`, every so many optimiser iterations during one)
-it publishes the parameters into the shared map.
-The publishing and the checks for stop / reset / snapshot requests happen in an optimiser post-step hook, so that
-`Mapper.map` knows nothing of them and a long step (the warm-up) still reacts within one iteration.
+runs the warm-up, then one mapping step per keyframe, within its budget (`budget.py`: when waiting keyframes join
+the newest one's window, when a step ends early). After each step (and, with `publish_every`, every so many
+iterations during one) it publishes the parameters into the shared map.
+The publishing and the checks for stop / reset / snapshot requests happen after every mapping iteration (the
+callback `Mapper.map` calls, `_after_iteration`), so that a long step (the warm-up) still reacts within one
+iteration.
 
 Cores: each worker owns `threads` torch threads (the machine's cores split between the two). While one worker is
 idle (the tracker during the warm-up or without frames, the mapper without keyframes), its threads are lent to the
-other (`CoreShare`, checked before every frame or step and after every optimiser iteration), so that the warm-up and
+other (`CoreShare`, checked before every frame or step and after every mapping iteration), so that the warm-up and
 the end of a run are not slower than in the lock-step schedule, which uses every core for whatever it does.
 
 Both workers: ignore SIGINT and SIGTERM (Ctrl-C reaches the whole process group, and service managers send SIGTERM
@@ -38,7 +34,6 @@ faults are separated by commas.
 """
 from __future__ import annotations
 
-import ctypes
 import dataclasses
 import io
 import logging
@@ -46,7 +41,6 @@ import os
 import queue
 import signal
 import sys
-import threading
 import time
 import traceback
 from collections import deque
@@ -56,33 +50,31 @@ from typing import Any, Optional
 import cv2
 import numpy as np
 import torch
-from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config, RuntimeConfig
 from eslam_core.device import peak_memory_mb as device_peak_mb, resolve_device
-from eslam_core.cpu import PeriodicRelease, lower_priority, name_process
+from eslam_core.child_process import become_child
+from eslam_core.cpu import PeriodicRelease, lower_priority
 from eslam_core.frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.mapper import import_optimiser_code
 from eslam_core.mapping.observed import ObservedSurfaces
-from eslam_core.mapping.scene_map import SceneMap, initial_extent, surface_points
+from eslam_core.mapping.scene_map import SceneMap, surface_points
 from eslam_core.native import load_kernel
-from eslam_core.outputs.atomic import atomic_output
+from eslam_core.atomic import atomic_output
 from eslam_core.representation.field import SceneField
 from eslam_core.runtime.api import peak_rss_mb
-from eslam_core.slam import loaded_slam, new_keyframe
-from eslam_core.tracking.frontend import TrackingFrontEnd
+from eslam_core.runtime.budget import MappingBudget
+from eslam_core.slam import loaded_slam
+from eslam_core.tracking.session import PoseCorrections, Tracked, TrackingSession
 from eslam_core.trajectory import FrameRecord, TrackedTrajectory
 from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap
 
 log = logging.getLogger("eslam")
 
 EXIT_CRASHED = 1
-EXIT_ORPHANED = 3  # the parent disappeared
 POLL_S = 0.05  # how often idle workers look at their flags and queues
-PARENT_WATCH_S = 0.25
-STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}  # ignored by workers: the parent stops them
 
 
 # ------------------------------------------------------------------------------------------------------ messages
@@ -140,10 +132,9 @@ class MapAttach:  # mapper -> tracker, after the warm-up and after every growth:
 
 
 @dataclass
-class RefinedPoses:  # mapper -> tracker
+class Corrections:  # mapper -> tracker
     epoch: int
-    poses: dict  # keyframe number -> (4, 4) float32
-    dropped: list = field(default_factory=list)  # keyframe numbers the store dropped (see keyframes.py)
+    corrections: PoseCorrections  # refined keyframe poses ((4, 4) float32), keyframes the store dropped
 
 
 @dataclass
@@ -213,7 +204,7 @@ class WorkerSetup:
 class Channels:
     ring: FrameRing
     to_mapper: Any  # queue: KeyframeMessage, TrackerFinished
-    to_tracker: Any  # queue: MapAttach, RefinedPoses
+    to_tracker: Any  # queue: MapAttach, Corrections
     to_parent: Any  # queue: WorkerReady, TrackedFrame, MappingReport, ...
     commands: Any  # queue, parent -> mapper: SnapshotRequest, MeshRequest
     # queue, mapper -> parent: MapperSnapshot. Not to_parent: a queue is one pipe behind one write lock, and the
@@ -255,35 +246,8 @@ class FaultPlan:
         raise InjectedFault(f"injected fault in the {worker} at step {step} (ESLAM_FAULT)")
 
 
-def die_with_parent(parent_pid: int) -> None:
-    """Exit when the parent does, even if it is SIGKILLed: the kernel's parent-death signal where there is one
-    (Linux), and in any case a thread that watches the parent pid."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        PR_SET_PDEATHSIG = 1
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-    except (OSError, AttributeError):
-        pass
-    if os.getppid() != parent_pid:  # the parent died before the signal was armed
-        os._exit(EXIT_ORPHANED)
-
-    def watch() -> None:
-        while True:
-            time.sleep(PARENT_WATCH_S)
-            if os.getppid() != parent_pid:
-                os._exit(EXIT_ORPHANED)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
-
-
 def become_worker(name: str, setup: WorkerSetup) -> None:
-    # Ctrl-C goes to the whole process group, SIGTERM often to every process of a service; the parent decides how
-    # its workers stop. (The parent spawns us with both blocked, so that they cannot hit us before these lines.)
-    for sig in STOP_SIGNALS:
-        signal.signal(sig, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
-    die_with_parent(setup.parent_pid)
-    name_process(f"eslam-{name}")
+    become_child(name, setup.parent_pid)
     logging.basicConfig(level=setup.log_level, format=f"%(levelname)s eslam.{name}: %(message)s")
     torch.set_num_threads(setup.threads)
     cv2.setNumThreads(setup.threads)  # OpenCV's pool (odometry, ORB) would otherwise take the other worker's core
@@ -415,11 +379,10 @@ class TrackerWorker:
         self.finished = False
         self.cores = CoreShare(ch.board, Counter.TRACKER_BUSY, Counter.MAPPER_BUSY, Counter.TRACKER_BEAT,
                                setup.threads, setup.lend_threads)
-        register_optimizer_step_post_hook(lambda *args: self.cores.update())  # the rendering tracker's iterations
 
     def _new_state(self) -> None:
-        self.frontend = TrackingFrontEnd(self.cfg, self.intr, self.dirs_cam)
-        self.trajectory = TrackedTrajectory(essential=True)  # the caller's copy has every field
+        # The caller's copy of the trajectory has every field; this one what tracking reads back.
+        self.session = TrackingSession(self.cfg, self.intr, self.dirs_cam, TrackedTrajectory(essential=True))
         self.replica = MapReplica(self.cfg, self.intr, self.dirs_cam)
         self.map: Optional[SharedMap] = None
         self.map_version = -1
@@ -428,8 +391,8 @@ class TrackerWorker:
             self.replica.start(loaded.map.extent)
             for kf in loaded.map.keyframes:
                 self.replica.add_keyframe(kf)
-            self.frontend = loaded.frontend
-            self.trajectory = TrackedTrajectory.from_state_dict(loaded.trajectory.state_dict(), essential=True)
+            self.session = TrackingSession(self.cfg, self.intr, self.dirs_cam, TrackedTrajectory.from_state_dict(
+                loaded.trajectory.state_dict(), essential=True), loaded.tracking.frontend)
 
     def run(self) -> None:
         self.ch.to_parent.put(WorkerReady("tracker", os.getpid()))
@@ -445,7 +408,7 @@ class TrackerWorker:
             if self.ch.control.stopping or self.ch.ring.drained():
                 self._finish()
                 continue
-            waiting = bool(self.frontend.unindexed)  # keyframes to index for relocalization while idle
+            waiting = bool(self.session.frontend.unindexed)  # keyframes to index for relocalization while idle
             frame, skipped = self.ch.ring.take(self.live, 0.0 if waiting else POLL_S)
             if skipped:
                 self.ch.board.add(Counter.DROPPED_BY_TRACKER, skipped)
@@ -461,7 +424,7 @@ class TrackerWorker:
 
     def _index_idle(self) -> bool:
         with self.ch.board.timed(Counter.TRACK_INDEX_S):
-            return self.frontend.index_next()
+            return self.session.frontend.index_next()
 
     def _sync_epoch(self) -> None:
         epoch = self.ch.control.epoch
@@ -479,11 +442,9 @@ class TrackerWorker:
                     self.map = SharedMap(self.ch.map_meta, msg.buffers, msg.generation)
                     self.replica.attach(msg.extent)
                     self.map_version = -1
-                elif isinstance(msg, RefinedPoses):
-                    self.trajectory.refine(msg.poses)
-                    self.replica.refine(msg.poses)
-                    self.frontend.refine(msg.poses)
-                    self.frontend.forget(msg.dropped)
+                elif isinstance(msg, Corrections):
+                    self.session.apply(msg.corrections)
+                    self.replica.refine(msg.corrections.refined)
             msg = _get(self.ch.to_tracker, 0.0)
 
     def _wait_for_map(self) -> None:
@@ -551,29 +512,19 @@ class TrackerWorker:
         board = self.ch.board
         pf = pf or self._prepare(item)
         if not self.replica.started:  # the first frame starts the map; the mapper warms it up
-            pose0, keyframe, tracked = self.frontend.first_pose(pf, self.trajectory), True, None
-            extent = initial_extent(self.cfg, pf, self.intr, pose0)
-            self.replica.start(extent)
-            record = self.trajectory.record(pf.index, pf.timestamp, pose0, 0.0, pf.gt_pose, keyframe=True)
-            kf = new_keyframe(pf, torch.from_numpy(pose0).float(), 0)
-            self.frontend.remember(kf)
-            self._hand_over(kf, extent)
+            tracked, kf = self.session.first(pf)
+            self.replica.start(tracked.extent)
+            self._hand_over(kf, tracked.extent)
         else:
             with board.timed(Counter.TRACK_ALIGN_S):
-                tracked = self.frontend.track(pf, self.replica, self.trajectory,
-                                              None if self.live else self._catch_up)
-            # (as in the lock-step SLAM: localization refines nothing, each frame is its own anchor)
-            keyframe = tracked.keyframe or self.cfg.run.mode == "localization"
-            record = self.trajectory.record(pf.index, pf.timestamp, tracked.pose.double().numpy(), tracked.loss,
-                                            pf.gt_pose, keyframe, tracked.quality.value, tracked.lost,
-                                            tracked.quality.degraded, tracked.covariance_matrix)
-        self._report(record, keyframe, item.arrival, start)
-        if tracked is not None and tracked.keyframe:  # after the pose is out: it need not wait for the keyframe
+                tracked = self.session.step(pf, self.replica, None if self.live else self._catch_up)
+        self._report(tracked, item.arrival, start)
+        if tracked.keyframe_due:  # after the pose is out: it need not wait for the keyframe
             with board.timed(Counter.TRACK_KEYFRAME_S):
-                kf = new_keyframe(pf, tracked.pose, record.reference)
+                kf = self.session.new_keyframe(pf, tracked)
                 self._hand_over(kf, None)
             with board.timed(Counter.TRACK_INDEX_S):
-                self.frontend.remember(kf)  # (indexed now only if the tracker was not idle for the older ones)
+                self.session.remember(kf)  # (indexed now only if the tracker was not idle for the older ones)
         self.tracked += 1
         board.add(Counter.TRACKED)
         board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
@@ -585,29 +536,28 @@ class TrackerWorker:
                                        item.odom_pose), self.intr, self.cfg.camera)
 
     def _dead_reckon(self, pf: PreparedFrame, arrival: float) -> bool:
-        """Live, before the first map: the frame's pose from the odometry alone (TrackingFrontEnd.dead_reckon)
+        """Live, before the first map: the frame's pose from the odometry alone (TrackingSession.dead_reckon)
         instead of waiting for the warm-up while the camera's frames are dropped. False where the odometry cannot
         pose it: the frame then waits for the map."""
         self.cores.busy(True)
         start = time.monotonic()
         board = self.ch.board
         with board.timed(Counter.TRACK_ALIGN_S):
-            reckoned = self.frontend.dead_reckon(pf, self.trajectory)
+            reckoned = self.session.dead_reckon(pf)
         if reckoned is None:
             return False
-        record = self.trajectory.record(pf.index, pf.timestamp, reckoned.pose.double().numpy(), reckoned.loss,
-                                        pf.gt_pose, False, reckoned.quality.value, False)
-        self._report(record, False, arrival, start)
+        self._report(reckoned, arrival, start)
         self.tracked += 1
         board.add(Counter.TRACKED)
         return True
 
-    def _report(self, record, keyframe: bool, arrival: float, start: float) -> None:
+    def _report(self, tracked: Tracked, arrival: float, start: float) -> None:
+        record = tracked.record
         done = time.monotonic()
         log.debug("tracker: frame %d tracked in %.2f s (%d threads)", record.index, done - start,
                   torch.get_num_threads())
         with self.ch.board.timed(Counter.TRACK_REPORT_S):
-            self.ch.to_parent.put(TrackedFrame(self.epoch, record, keyframe, done - arrival, done))
+            self.ch.to_parent.put(TrackedFrame(self.epoch, record, tracked.anchor, done - arrival, done))
 
     def _hand_over(self, kf: Keyframe, extent: Optional[np.ndarray]) -> None:
         """Send a new keyframe to the mapper; keep only the newest one's images here."""
@@ -616,7 +566,8 @@ class TrackerWorker:
         self.ch.board.add(Counter.KEYFRAMES)
 
     def _finish(self) -> None:
-        done = TrackerFinished(self.epoch, len(self.trajectory), self.trajectory.keyframes)
+        trajectory = self.session.trajectory
+        done = TrackerFinished(self.epoch, len(trajectory), trajectory.keyframes)
         self.ch.to_mapper.put(done)
         self.ch.to_parent.put(done)
         self.finished = True
@@ -641,13 +592,12 @@ class MapperWorker:
         self.early: list = []  # messages of an epoch this worker has not caught up with yet (see _receive)
         self.steps = 0  # mapping steps done (the warm-up is step 0), over all epochs
         self._new_state()
-        self.iterations = 0  # optimiser iterations of the current step
         self.publishing_mid_step = False
         self.first_map_at: Optional[int] = None  # the warm-up iteration that attaches the tracker, if not its end
         self.cores = CoreShare(ch.board, Counter.MAPPER_BUSY, Counter.TRACKER_BUSY, Counter.MAPPER_BEAT,
                                setup.threads, setup.lend_threads)
-        self.backlog_limit = 0 if self.live else setup.keyframe_backlog
-        register_optimizer_step_post_hook(self._after_iteration)
+        self.budget = MappingBudget.of(self.cfg.mapping.iterations, self.live, self.cfg.runtime.idle_iterations,
+                                       setup.catch_up_iterations, setup.keyframe_backlog)
         import_optimiser_code()
 
     def _new_state(self) -> None:
@@ -743,16 +693,16 @@ class MapperWorker:
         else:
             field = self.scene.field
             with self.ch.board.timed(Counter.MAP_ADD_S):
-                if self.backlog_limit is not None:  # too far behind: older keyframes join the newest one's window
-                    while len(self.pending) > self.backlog_limit + 1:
-                        self.scene.add_keyframe(self.pending.popleft().keyframe())
+                for _ in range(self.budget.merged(len(self.pending))):  # behind: into the newest one's window
+                    self.scene.add_keyframe(self.pending.popleft().keyframe())
                 self.scene.add_keyframe(self.pending.popleft().keyframe())
             self._update_backlog()
             attach = self.scene.field is not field  # grown: a new map, in new shared buffers
             if attach:
                 self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
             with self.ch.board.timed(Counter.MAP_STEP_S):
-                step = self._step(lambda: self.scene.map_newest(self._stop_early, self._step_iterations()))
+                step = self._step(lambda: self.scene.map_newest(self._after_regular_iteration,
+                                                                self.budget.step_iterations()))
             loss, refined = (step.loss, {i: p.numpy().copy() for i, p in step.refined.items()}) if step else \
                 (float("nan"), {})
         version = self._publish()
@@ -762,7 +712,7 @@ class MapperWorker:
             self._attach_tracker()
         dropped = self.scene.keyframes.take_dropped()
         if refined or dropped:
-            self.ch.to_tracker.put(RefinedPoses(self.epoch, refined, dropped))
+            self.ch.to_tracker.put(Corrections(self.epoch, PoseCorrections(refined, tuple(dropped))))
         self.steps_in_epoch += 1
         self.steps += 1
         board = self.ch.board
@@ -793,7 +743,7 @@ class MapperWorker:
         self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
         self.first_map_at = self.cfg.runtime.first_map_after
         try:
-            step = self._step(self.scene.warm_up, publish=False)
+            step = self._step(lambda: self.scene.warm_up(self._after_iteration), publish=False)
         finally:
             self.first_map_at = None
         return step.loss if step else float("nan")
@@ -803,7 +753,6 @@ class MapperWorker:
         self.tracker_attached = True
 
     def _step(self, run, publish: bool = True):
-        self.iterations = 0
         self.publishing_mid_step = publish
         try:
             return run()
@@ -814,29 +763,13 @@ class MapperWorker:
         finally:
             self.publishing_mid_step = False
 
-    def _step_iterations(self) -> Optional[int]:
-        """Live, a step may take the mapper's idle time between keyframes: up to runtime.idle_iterations (None:
-        mapping.iterations, as offline, where the tracker waits for the mapper and it has no idle time)."""
-        idle = self.cfg.runtime.idle_iterations
-        return max(idle, self.cfg.mapping.iterations) if self.live and idle is not None else None
+    def _after_regular_iteration(self, iterations: int) -> bool:
+        return self._after_iteration(iterations) or self.budget.stop_early(iterations, self.keyframes_waiting())
 
-    def _stop_early(self, iterations: int) -> bool:
-        """A step ends early when it is behind (catch-up), or past mapping.iterations once a newer keyframe waits."""
-        if self.setup.catch_up_iterations and self._behind(iterations):
-            return True
-        return iterations >= self.cfg.mapping.iterations and self._waiting() > 0
-
-    def _waiting(self) -> int:
+    def keyframes_waiting(self) -> int:
         """Keyframes newer than the one being mapped: received, or still in the queue."""
         queued = self.ch.board.get(Counter.KEYFRAMES) - self.ch.board.get(Counter.KEYFRAMES_RECEIVED)
         return len(self.pending) + int(queued)
-
-    def _behind(self, iterations: int) -> bool:
-        """Newer keyframes wait (received, or still in the queue) and the step has had its share of the catch-up
-        budget: `catch_up_iterations` divided among the keyframes waiting, so that a mapper that has fallen behind
-        by several keyframes catches up instead of lagging further behind with every step."""
-        waiting = self._waiting()
-        return waiting > 0 and iterations * waiting >= self.setup.catch_up_iterations
 
     def _publish(self, step_done: bool = True) -> int:
         # In the middle of a step the newest keyframe is not fitted yet.
@@ -846,19 +779,20 @@ class MapperWorker:
         self.ch.board.add(Counter.PUBLISHES)
         return version
 
-    def _after_iteration(self, optimizer, args, kwargs) -> None:
-        """Runs after every optimiser step of a mapping step (a global torch hook: only mapping optimises here)."""
+    def _after_iteration(self, iterations: int) -> bool:
+        """After every iteration of a mapping step (`iterations` done): abandon it for a stop or a reset, lend or
+        take back cores, publish, serve requests. Never ends the step itself (that is the budget's call)."""
         control = self.ch.control
         if control.stopping or control.exiting or control.epoch != self.epoch:
             raise Interrupted
         self.cores.update()
-        self.iterations += 1
-        if self.publishing_mid_step and self.setup.publish_every and self.iterations % self.setup.publish_every == 0:
+        if self.publishing_mid_step and self.setup.publish_every and iterations % self.setup.publish_every == 0:
             self._publish(step_done=False)
-        if self.iterations == self.first_map_at:  # the warm-up's keyframe counts as mapped from here on
+        if iterations == self.first_map_at:  # the warm-up's keyframe counts as mapped from here on
             self._publish()
             self._attach_tracker()
         self._serve_requests()
+        return False
 
     # ---------------------------------------------------------------------------------------------- snapshots
     def _serve_requests(self) -> None:

@@ -41,7 +41,9 @@ from eslam_core.tracking.information import PoseCovariance
 from eslam_core.tracking.odometry import FrameOdometry
 from eslam_core.tracking.quality import (RESIDUAL_WINDOW, Quality, TrackingEvidence, is_lost, tracking_quality,
                                          typical_loss)
-from eslam_core.tracking.render_tracker import TrackingResult, constant_velocity, make_tracker, time_ratio
+from eslam_core.tracking.render_tracker import Tracker, constant_velocity, time_ratio
+from eslam_core.tracking.result import TrackingResult
+from eslam_core.tracking.sdf_tracker import SDFTracker
 from eslam_core.trajectory import TrackedTrajectory
 
 log = logging.getLogger("eslam")
@@ -58,6 +60,13 @@ RECHECK_AFTER = 5
 # A view with less of its depth in mapped space than this has left the map: against a map that lags the keyframes,
 # the frame waits for the newer map (TrackingFrontEnd.track's `catch_up`).
 MAPPED_AT_LEAST = 0.5
+
+
+def make_tracker(cfg: Config, dirs_cam: torch.Tensor, intr: Intrinsics):
+    """The tracker the config asks for: the paper's rendering tracker or the fast SDF alignment."""
+    if cfg.tracking.method == "sdf":
+        return SDFTracker(cfg, dirs_cam, intr)
+    return Tracker(cfg, dirs_cam, intr.height, intr.width)
 
 
 def left_the_map(result: TrackingResult) -> bool:

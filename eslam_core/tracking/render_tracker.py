@@ -10,63 +10,20 @@ there once per frame, the best pose and loss are kept there (no host round trip 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 
-from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
 from eslam_core.cpu import denormals_flushed, flat_nonzero
 from eslam_core.representation.field import FoldedMap, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
 from eslam_core.geometry import depth_points_world, params_to_pose, pose_to_params, rays_to_world, scale_motion
-from eslam_core.mapping.extent import outside_mask
+from eslam_core.mapping.extent import draw_in_extent
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.rendering.losses import eslam_losses
 from eslam_core.mapping.observed import ObservedSurfaces
-from eslam_core.tracking.information import PoseCovariance
 from eslam_core.rendering.volume import render_rays
-
-
-@dataclass
-class TrackingResult:
-    pose: torch.Tensor  # (4, 4) camera-to-world
-    loss: float  # best loss over the iterations
-    rays: int  # rays per iteration after dropping those without depth
-    # The evidence for the tracking quality (quality.py), NaN where not measured: pixels with depth inside the
-    # border / pixels inside the border; scored points within the truncation of the mapped surface at the
-    # returned pose; scored points in observed space.
-    depth_fraction: float = float("nan")
-    inlier_fraction: float = float("nan")
-    observed_fraction: float = float("nan")
-    # Depth points inside the border that the map can score at the starting pose (in its extent and, for the SDF
-    # tracker, in observed space) / depth points inside the border: low when the view has left the mapped space.
-    mapped_fraction: float = float("nan")
-    covariance: PoseCovariance | None = None  # of the pose (information.py); None where not measured
-
-
-def draw_in_extent(candidates: torch.Tensor, n: int, world_points, extent: np.ndarray | None
-                   ) -> tuple[torch.Tensor, float]:
-    """Up to n pixels drawn at random (with replacement) from `candidates` whose depth point (`world_points(pixels)`
-    at the starting pose) lies inside the map's extent (the field knows nothing beyond it), and the fraction of the
-    candidates inside, estimated from the draw. Testing only drawn pixels costs 2n points instead of every pixel
-    (12 ms for a 640x480 frame on one core); a frame mostly outside gets a second, larger draw (up to 16n)."""
-    if len(candidates) == 0:
-        return candidates, 0.0
-
-    def draw(k: int) -> torch.Tensor:
-        return candidates[torch.randint(len(candidates), (k,), device=candidates.device)]  # (randperm: 2 ms)
-
-    first = draw(2 * n)
-    if extent is None:
-        return first[:n], 1.0
-    inside = ~outside_mask(world_points(first), extent)
-    share, kept = float(inside.float().mean()), first[inside]
-    if 0 < len(kept) < n:
-        more = draw(min(16 * n, int(1.2 * (n - len(kept)) / share) + 1))
-        kept = torch.cat([kept, more[~outside_mask(world_points(more), extent)]])
-    return kept[:n], share
+from eslam_core.tracking.result import TrackingResult
 
 
 def constant_velocity(prev2: np.ndarray | None, prev: np.ndarray, time_ratio: float = 1.0) -> np.ndarray:
@@ -165,12 +122,3 @@ class Tracker:
         then the frame mostly sees new space, and rays through it still constrain the pose better than few rays."""
         seen = observed.contains(depth_points_world(self.dirs_cam[candidates], depth[candidates], pose))
         return candidates[seen] if 2 * int(seen.sum()) >= len(candidates) else candidates
-
-
-def make_tracker(cfg: Config, dirs_cam: torch.Tensor, intr: Intrinsics):
-    """The tracker the config asks for: the paper's rendering tracker or the fast SDF alignment."""
-    if cfg.tracking.method == "sdf":
-        from eslam_core.tracking.sdf_tracker import SDFTracker
-
-        return SDFTracker(cfg, dirs_cam, intr)
-    return Tracker(cfg, dirs_cam, intr.height, intr.width)

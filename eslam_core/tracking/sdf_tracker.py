@@ -38,12 +38,13 @@ from eslam_core.cpu import denormals_flushed, flat_nonzero, one_thread
 from eslam_core.representation.field import FoldedMap, FrozenField, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
 from eslam_core.geometry import depth_points_world, matrix_to_rotvec, so3_exp
+from eslam_core.mapping.extent import draw_in_extent
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.native import load_kernel, pointer
 from eslam_core.tracking.information import constrained_step, pose_covariance, unconstrained_part
 from eslam_core.tracking.photometric import Reference, grey_pyramid, photometric_residuals, sample, to_grey
-from eslam_core.tracking.render_tracker import TrackingResult, draw_in_extent
+from eslam_core.tracking.result import TrackingResult
 
 SATURATED_COLOR = 3.0  # the colour penalty of a saturated point, in units of its Huber scale
 SATURATED_COST = SATURATED_COLOR - 0.5  # its Huber cost (huber_cost of SATURATED_COLOR)
