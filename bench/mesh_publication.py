@@ -30,7 +30,7 @@ from eslam_core.datasets import open_dataset  # noqa: E402
 from eslam_core.datasets.synthetic import ensure_scene  # noqa: E402
 from eslam_core.demo import default_cache  # noqa: E402
 from eslam_core.outputs.export import map_mesh  # noqa: E402
-from eslam_core.outputs.mesh_worker import BackgroundMesher, snapshot_for_meshing  # noqa: E402
+from eslam_core.runtime.mesher import BackgroundMesher, snapshot_for_meshing  # noqa: E402
 from eslam_core.slam import SLAM  # noqa: E402
 from eslam_ros.mesh_markers import TriangleBlock, serialize_block_markers, serialize_mesh_marker_array  # noqa: E402
 

@@ -1,5 +1,5 @@
 """What every child process of the system does about its parent: the tracker and the mapper (runtime/workers.py)
-and the mesher (outputs/mesh_worker.py).
+and the mesher (runtime/mesher.py).
 
 A child ignores the stop signals: Ctrl-C reaches the whole process group and service managers send SIGTERM to every
 process of a service, but stopping is the parent's decision (it asks its children, or SIGKILLs them). The parent

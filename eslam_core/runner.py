@@ -28,6 +28,7 @@ from eslam_core.outputs.export import estimated_trajectory, ground_truth_traject
     tracking_summary, write_trajectories
 from eslam_core.atomic import OutputsNotWritten, OutputWriteError, make_output_folder, write_atomic
 from eslam_core.outputs.mesh import EmptyMeshError, save_ply
+from eslam_core.runtime import make_runtime
 from eslam_core.runtime.api import peak_rss_mb
 from eslam_core.slam import SLAM
 from eslam_core.trajectory import TrackedTrajectory
@@ -199,8 +200,6 @@ def run_with_runtime(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_l
                      policy: str, options: dict) -> RunSummary:
     """`run_sequence` through a runtime: frames are submitted as fast as they load (offline policy) or at the data
     set's frame rate (live policy), the progress bar follows the polled poses."""
-    from eslam_core.runtime import make_runtime
-
     if resume is not None:
         raise ValueError("--resume continues a lock-step run only: use --workers 1 with --resume "
                          "(or start a new run without --resume)")

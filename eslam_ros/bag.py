@@ -542,24 +542,10 @@ def _accepted_frames(reader: Reader, rgb_c: Any, depth_c: Any, info_c: Any, pipe
 
     With an odometry (`robot`, fed from `odom_c`), frames come out once their odometry is settled, bag time
     standing for the clock (a frame waits for odometry until the bag is `odom.wait` s past its stamp)."""
-    from eslam_ros.robot_odometry import frame_with_odometry
     from eslam_ros.input_pipeline import AcceptedFrame, SkippedInput
 
     streams = {rgb_c.id: 0, depth_c.id: 1}
     wanted = [rgb_c, depth_c] + ([info_c] if info_c is not None else []) + ([odom_c] if odom_c is not None else [])
-    map_started = False
-
-    def settled(now: float, flush: bool = False) -> Iterator[Any]:
-        nonlocal map_started
-        for accepted, odometry in robot.release(now, flush):
-            if odometry.problem is not None or odometry.jumped:
-                log.warning("frame at %.3f: %s", accepted.frame.timestamp, odometry.message)
-            frame = frame_with_odometry(accepted.frame, odometry, map_started, external)
-            if frame is None:
-                robot.counts["odom_frames_skipped"] += 1
-                continue
-            map_started = map_started or odometry.problem is None
-            yield dataclasses.replace(accepted, frame=frame)
 
     def frames_of(pipeline_events: Sequence[Any], now: float, flush: bool = False) -> Iterator[Any]:
         for event in pipeline_events:
@@ -571,7 +557,7 @@ def _accepted_frames(reader: Reader, rgb_c: Any, depth_c: Any, info_c: Any, pipe
                 else:  # it waits for its odometry
                     robot.push(event.frame.timestamp, event.frame_id, event, now)
         if robot is not None:
-            yield from settled(now, flush)
+            yield from robot.settled(now, flush, external, lambda kind, message: log.warning("%s", message))
 
     now = 0.0
     for c, t, raw in reader.messages(connections=wanted):

@@ -24,6 +24,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from visualization_msgs.msg import Marker
 
 from eslam_core.runtime.api import RateMeter
+from eslam_ros.qos import output_qos
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 # The input rate is measured over this window (seconds): long enough to be steady, short enough to see a stall.
@@ -127,3 +128,84 @@ def diagnostic_value(value: Any) -> str:
     if isinstance(value, float):
         return "nan" if math.isnan(value) else f"{value:.6g}"
     return str(value)
+
+
+def health_values(node: Any) -> dict[str, Any]:
+    """The runtime's health figures and a SLAM node's counters (slam_node.py), as published on ~/status."""
+    values: dict[str, Any] = {"runtime": node.state(), "ready": node.ready(),
+                              "tf_mode": node.tf_setup.describe(node.settings, node.camera_frame or "<image frame_id>"),
+                              "tracking_mode": node.config.tracking.mode}
+    if node.runtime is not None and not node.failed:
+        values.update(node.runtime.health().as_dict())
+    values["frames_accepted"] = node.pipeline.frames_accepted
+    values["pairs"] = node.pipeline.pairs
+    # (copied at once: the inputs' thread may add a key meanwhile)
+    values.update(dict(node.pipeline.unpaired))
+    skipped = dict(node.pipeline.skipped)
+    values.update({f"skipped_{reason}": count for reason, count in skipped.items()})
+    values["skipped_total"] = sum(skipped.values())
+    poses = node.poses.counts
+    values["poses_published"] = poses.poses
+    values["poses_invalid"] = poses.poses_invalid
+    values["poses_lost"] = poses.poses_lost
+    values.update(node.mesh.status())
+    values["stream_restarts"] = node.restarts
+    values["frames_dropped_while_starting"] = node.host.dropped_while_starting
+    held = node.host.held
+    values["start_queue_frames"] = len(held)
+    values["start_queue_bytes"] = held.bytes
+    values["start_queue_peak_bytes"] = held.peak_bytes
+    values["start_queue_budget_bytes"] = node.settings.start_queue_bytes
+    values["input_rate_hz"] = node.inputs.rate()
+    for name in node.watched_inputs():
+        values[f"seconds_since_{name.replace('/', '_')}"] = node.inputs.silent_for(name)
+    if node.odometry is not None:
+        values.update(dict(node.odometry.counts))
+        values["frames_waiting_for_odometry"] = len(node.odometry)
+    values["latency_ms_receive_to_pose_last"] = 1000 * poses.latency.last
+    values["latency_ms_receive_to_pose_mean"] = 1000 * poses.latency.mean
+    values["latency_ms_receive_to_pose_max"] = 1000 * poses.latency.worst
+    values["node_ms_per_pair_in"] = 1000 * node.input_seconds / max(node.pipeline.pairs, 1)
+    values["node_ms_per_pose_out"] = 1000 * poses.seconds / max(poses.poses, 1)
+    return values
+
+
+class StatusReport:
+    """~/status and /diagnostics (the same DiagnosticArray) and ~/status_marker (its summary above the camera), each
+    status period: the node's health figures, with the level and summary of `status_level`. Keeps what the level
+    compares with the last period (poses, skipped inputs, odometry problems)."""
+
+    ODOMETRY_PROBLEMS = ("odom_missing", "odom_gaps", "odom_jumps", "odom_rejected")
+
+    def __init__(self, node: Any, hardware_id: str, map_frame: str, up: np.ndarray, no_input_timeout: float,
+                 min_input_rate: float) -> None:
+        self.name = f"{node.get_name()}: ESLAM"  # the same for the node's whole life: aggregators group by it
+        self.hardware_id, self.map_frame, self.up = hardware_id, map_frame, up
+        self.no_input_timeout, self.min_input_rate = no_input_timeout, min_input_rate
+        self.status_pub = node.create_publisher(DiagnosticArray, "~/status", output_qos())
+        self.diagnostics_pub = node.create_publisher(DiagnosticArray, "/diagnostics", output_qos())
+        self.marker_pub = node.create_publisher(Marker, "~/status_marker", output_qos(1))
+        self._poses, self._skipped, self._problems = (0, time.monotonic()), 0, {}
+
+    @property
+    def publishers(self) -> list:
+        return [self.status_pub, self.diagnostics_pub, self.marker_pub]
+
+    def publish(self, values: dict[str, Any], inputs: StatusInputs, odometry: bool, position: np.ndarray,
+                stamp: Any, now: Optional[float] = None) -> None:
+        """`values`: the health figures; `inputs`: the level's inputs but the per-period counts, filled in here
+        (odometry problems where the node takes `odometry`)."""
+        now = time.monotonic() if now is None else now
+        poses_before, since = self._poses
+        values["pose_rate_hz"] = (inputs.poses - poses_before) / max(now - since, 1e-9)
+        self._poses = (inputs.poses, now)
+        inputs.skipped_now, self._skipped = values["skipped_total"] - self._skipped, values["skipped_total"]
+        problems = {key: values.get(key, 0) for key in self.ODOMETRY_PROBLEMS}
+        inputs.odometry_problems_now = {key: count - self._problems.get(key, 0) for key, count in problems.items()
+                                        } if odometry else {}
+        self._problems = problems
+        level, summary = status_level(inputs, self.no_input_timeout, self.min_input_rate)
+        msg = diagnostic_array(self.name, self.hardware_id, level, summary, values, stamp)
+        self.status_pub.publish(msg)
+        self.diagnostics_pub.publish(msg)
+        self.marker_pub.publish(status_marker(self.name, level, summary, position + self.up, self.map_frame, stamp))

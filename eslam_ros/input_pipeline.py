@@ -48,6 +48,7 @@ class AcceptedFrame:
     frame_id: str  # the rgb image's frame (the camera's optical frame)
     intrinsics: Intrinsics
     received: float  # time.monotonic() when the message completing the pair arrived
+    odometry: Any = None  # REP 105 mode: the robot's odometry at the frame (a FrameOdometry), once the node has it
 
 
 @dataclass(frozen=True)

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
 from eslam_core.outputs.mesh import EmptyMeshError
-from eslam_core.outputs.mesh_worker import BackgroundMesher, MesherCrashed, MeshSnapshot, MeshUpdate, PackedSnapshot
+from eslam_core.runtime.mesher import BackgroundMesher, MesherCrashed, MeshSnapshot, MeshUpdate, PackedSnapshot
 from eslam_ros.mesh_markers import TriangleBlock, block_message_parts, serialize_block_markers
 
 # Seconds between two looks at the mesh process (its results, new subscribers, the next job).

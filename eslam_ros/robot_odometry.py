@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 from dataclasses import dataclass
-from typing import Any, Generic, Optional, TypeVar
+from typing import Any, Callable, Generic, Iterator, Optional, TypeVar
 
 import numpy as np
 
@@ -58,6 +58,7 @@ class RobotOdometry(Generic[Item]):
         self._lock = threading.Lock()
         self.counts = {"odom_messages": 0, "odom_rejected": 0, "odom_matched": 0, "odom_missing": 0,
                        "odom_gaps": 0, "odom_jumps": 0, "odom_frames_skipped": 0}
+        self.map_started = False  # a frame of this map had odometry: the map frame is seeded (frame_with_odometry)
 
     # ------------------------------------------------------------------------------------------------ inputs
 
@@ -122,9 +123,26 @@ class RobotOdometry(Generic[Item]):
                                                     "map -> odom takes it up" if jumped else "")))
         return out
 
+    def settled(self, now: float, flush: bool, external: bool,
+                warn: Callable[[str, str], None]) -> Iterator[Item]:
+        """The held frames (AcceptedFrames) whose odometry is settled, as SLAM gets them (`frame_with_odometry`),
+        each carrying its odometry where it has one; frames that cannot go on are counted (odom_frames_skipped).
+        `warn(kind, message)` for a frame without odometry or with a jump."""
+        for accepted, odometry in self.release(now, flush):
+            if odometry.problem is not None or odometry.jumped:
+                warn(odometry.problem.value if odometry.problem is not None else "jump",
+                     f"frame at {accepted.frame.timestamp:.3f}: {odometry.message}")
+            frame = frame_with_odometry(accepted.frame, odometry, self.map_started, external)
+            if frame is None:
+                self.counts["odom_frames_skipped"] += 1
+                continue
+            self.map_started = self.map_started or odometry.problem is None
+            yield dataclasses.replace(accepted, frame=frame, odometry=odometry if odometry.problem is None else None)
+
     def reset(self) -> None:
         """A new map: the odometry starts afresh (frames still waiting stay)."""
         self.continuity.reset()
+        self.map_started = False
 
 
 def frame_with_odometry(frame: Frame, odometry: FrameOdometry, map_started: bool, external: bool) -> Optional[Frame]:

@@ -151,3 +151,12 @@ def test_imports_are_read_from_every_statement(tmp_path, monkeypatch, statement,
     probe.write_text(statement + "\n")
     monkeypatch.setitem(MODULES, "eslam_core.probe", probe)
     assert imported_modules("eslam_core.probe") == expected
+
+
+def test_no_class_of_the_ros_package_is_over_400_lines():
+    """The node is glue over its parts (slam_node.py's docstring), not the place where everything lands."""
+    long = sorted(f"{path.name}: {node.name} ({node.end_lineno - node.lineno + 1} lines)"
+                  for path in (ROOT / "eslam_ros").glob("*.py")
+                  for node in ast.parse(path.read_text()).body
+                  if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > 400)
+    assert not long, long

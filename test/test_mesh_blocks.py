@@ -1,4 +1,4 @@
-"""The map meshed in world blocks (outputs/mesh_blocks.py) and in a low-priority process (outputs/mesh_worker.py):
+"""The map meshed in world blocks (outputs/mesh_blocks.py) and in a low-priority process (runtime/mesher.py):
 blocks tile the surface without seams, only changed blocks are reported, a time budget spreads the work, block
 addresses survive map growth.
 
@@ -17,7 +17,7 @@ from eslam_core.camera import Intrinsics
 from eslam_core.outputs.mesh import MeshSettings, extract_mesh
 from eslam_core.outputs.mesh_blocks import (BlockLayout, IncrementalMesher, MapView, surface_changed, thinning_stride,
                                             triangle_soup, BlockMesh)
-from eslam_core.outputs.mesh_worker import BackgroundMesher, MeshSnapshot
+from eslam_core.runtime.mesher import BackgroundMesher, MeshSnapshot
 
 T = 0.1  # truncation (m)
 FLOOR = 0.013  # height of the floor: off the grid planes

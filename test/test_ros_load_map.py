@@ -23,7 +23,7 @@ from eslam_core.datasets.synthetic import default_intrinsics
 from eslam_core.outputs.export import save_checkpoint
 from eslam_core.slam import SLAM
 from eslam_ros.conversions import msg_to_pose, stamp_to_sec
-from eslam_ros.slam_node import SlamNode
+from eslam_ros.slam_node import start_node
 from test_ros_robot_node import SMALL_SLAM, Camera, Spinner
 
 MAPPED = 12  # the checkpoints map frames 0-11 of the room; the node is fed the frames after them
@@ -93,7 +93,7 @@ class Session:
         self.sequence, self.maps = sequence, maps
         self.map_file = folder / "map.pt"
         shutil.copyfile(maps["first"], self.map_file)
-        self.node = SlamNode(parameter_overrides=[rclpy.parameter.Parameter(name, value=value) for name, value in {
+        self.node = start_node(parameter_overrides=[rclpy.parameter.Parameter(name, value=value) for name, value in {
             **SMALL_SLAM, "policy": "offline", "input_qos": "reliable", "input_queue_depth": 100,
             "path_period": 0.2, "output_dir": str(folder / "out"), "map_file": str(self.map_file)}.items()])
         self.client_node = Node("load_map_test")
@@ -241,7 +241,7 @@ def test_before_the_first_frame_the_camera_is_checked_when_it_comes(ros, maps, t
     """No frame yet, so no camera: ~/load_map checks the rest, and says the camera waits for the first frame."""
     map_file = tmp_path / "map.pt"
     shutil.copyfile(maps["first"], map_file)
-    node = SlamNode("slam_node_cold", parameter_overrides=[
+    node = start_node("slam_node_cold", parameter_overrides=[
         rclpy.parameter.Parameter(name, value=value) for name, value in {
             **SMALL_SLAM, "output_dir": str(tmp_path / "out"), "map_file": str(map_file)}.items()])
     caller = Node("load_map_cold_test")

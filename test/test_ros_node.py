@@ -340,9 +340,9 @@ def ros(monkeypatch):
 
 
 def test_node_declares_every_parameter_and_refuses_changes_while_running(ros):
-    from eslam_ros.slam_node import SlamNode
+    from eslam_ros.slam_node import start_node
 
-    node = SlamNode(parameter_overrides=[rclpy.parameter.Parameter("preset", value="tum"),
+    node = start_node(parameter_overrides=[rclpy.parameter.Parameter("preset", value="tum"),
                                          rclpy.parameter.Parameter("eslam.tracking.iterations", value=5)])
     try:
         names = set(node.list_parameters([], 0).names)

@@ -29,7 +29,9 @@ from eslam_core.datasets.tum import read_tum
 from eslam_ros.bag import FORWARD_CAMERA, BagOdometry, write_bag
 from eslam_ros.conversions import camera_info_from_intrinsics, depth_to_image, msg_to_pose, rgb_to_image, \
     stamp_to_sec
-from eslam_ros.slam_node import SlamNode, spin_once
+from eslam_ros.node_params import NodeParameterError
+from eslam_ros.node_threads import spin_once
+from eslam_ros.slam_node import SlamNode, start_node
 from eslam_ros.tf_chain import pose_from_xyz_quaternion, transform_to_pose
 
 REPO = Path(__file__).resolve().parent.parent
@@ -113,7 +115,7 @@ def _values(status: DiagnosticStatus) -> dict:
 
 
 def test_diagnostics_name_the_silent_inputs_and_report_ready_once_the_camera_is_there(ros, tmp_path):
-    node = SlamNode(parameter_overrides=_overrides({
+    node = start_node(parameter_overrides=_overrides({
         **SMALL_SLAM, "status_period": 0.1, "diagnostics.no_input_timeout": 0.5, "output_dir": str(tmp_path),
         "diagnostics.hardware_id": "d435i"}))
     watcher = Node("diagnostics_watcher")
@@ -156,7 +158,7 @@ def test_offline_policy_keeps_every_frame_that_arrives_while_the_runtime_starts(
     and dropped the rest): each gets a pose."""
     sequence = long_sequence
     n = len(sequence)
-    node = SlamNode(parameter_overrides=_overrides({
+    node = start_node(parameter_overrides=_overrides({
         **SMALL_SLAM, "workers": 2, "policy": "offline", "input_qos": "reliable", "input_queue_depth": 200,
         "output_dir": str(tmp_path)}))
     driver = Node("camera_driver")
@@ -186,16 +188,39 @@ def test_offline_policy_keeps_every_frame_that_arrives_while_the_runtime_starts(
 # ================================================================================================= lifecycle
 
 
-def test_every_lifecycle_transition_keeps_the_map_until_cleanup_saves_it(ros, room_sequence, tmp_path):
-    from lifecycle_msgs.msg import State
-    from rclpy.lifecycle import TransitionCallbackReturn
+class LifecycleClient:
+    """`ros2 lifecycle set / get` from another node: the node's lifecycle services."""
 
-    from eslam_ros.lifecycle_node import LifecycleSlamNode
+    def __init__(self, node: Node, target: str) -> None:
+        from lifecycle_msgs.srv import ChangeState, GetState
+
+        self._change = node.create_client(ChangeState, f"{target}/change_state")
+        self._get = node.create_client(GetState, f"{target}/get_state")
+        self._request = ChangeState.Request
+        assert self._change.wait_for_service(10.0) and self._get.wait_for_service(10.0)
+
+    def set(self, transition: int) -> bool:
+        from lifecycle_msgs.msg import Transition
+
+        future = self._change.call_async(self._request(transition=Transition(id=transition)))
+        assert _until(future.done, 180.0), "no answer to the transition"
+        return future.result().success
+
+    def get(self) -> int:
+        from lifecycle_msgs.srv import GetState
+
+        future = self._get.call_async(GetState.Request())
+        assert _until(future.done, 10.0)
+        return future.result().current_state.id
+
+
+def test_every_lifecycle_transition_keeps_the_map_until_cleanup_saves_it(ros, room_sequence, tmp_path):
+    from lifecycle_msgs.msg import State, Transition
 
     sequence = room_sequence.subset(0, 9)
     stamps = sequence.timestamps()
     out = tmp_path / "out"
-    node = LifecycleSlamNode(parameter_overrides=_overrides({
+    node = SlamNode(parameter_overrides=_overrides({
         **SMALL_SLAM, "policy": "offline", "input_qos": "reliable", "input_queue_depth": 100, "output_dir": str(out),
         "save_on_shutdown": True, "status_period": 0.1}))
     driver = Node("camera_driver")
@@ -204,30 +229,32 @@ def test_every_lifecycle_transition_keeps_the_map_until_cleanup_saves_it(ros, ro
     driver.create_subscription(PoseStamped, "/slam_node/pose", poses.append, 100)
     driver.create_subscription(DiagnosticArray, "/slam_node/status", status.append, 10)
     spinner = Spinner(node, driver)
+    lifecycle = LifecycleClient(driver, "/slam_node")
     try:
+        assert lifecycle.get() == State.PRIMARY_STATE_UNCONFIGURED
         assert not node.configured and node.parameters_open  # unconfigured: parameters may still change
         assert node.set_parameters([Parameter("sync.queue_size", value=12)])[0].successful
-        assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
-        assert node._state_machine.current_state[0] == State.PRIMARY_STATE_INACTIVE
+        assert lifecycle.set(Transition.TRANSITION_CONFIGURE)
+        assert lifecycle.get() == State.PRIMARY_STATE_INACTIVE
         assert node.settings.sync_queue_size == 12 and not camera.matched()  # no input while inactive
         assert not node.set_parameters([Parameter("sync.queue_size", value=13)])[0].successful
         assert _until(lambda: status and "inactive" in status[-1].status[0].message, 10.0)
 
-        assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+        assert lifecycle.set(Transition.TRANSITION_ACTIVATE) and lifecycle.get() == State.PRIMARY_STATE_ACTIVE
         assert _until(lambda: camera.matched() and node.ready(), 10.0)  # both ends see each other
         for i in range(4):
             camera.publish(i, stamps[i])
         assert _until(lambda: len(poses) == 4, 120.0), (len(poses), node.health())
         runtime = node.runtime
 
-        assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+        assert lifecycle.set(Transition.TRANSITION_DEACTIVATE) and lifecycle.get() == State.PRIMARY_STATE_INACTIVE
         assert _until(lambda: not camera.matched(), 10.0)
         camera.publish(4, stamps[4])  # nobody listens: not taken
         time.sleep(0.5)
         assert node.runtime is runtime and len(node.runtime.trajectory()[0]) == 4  # the map and trajectory stay
         assert node.pipeline.pairs == 4
 
-        assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+        assert lifecycle.set(Transition.TRANSITION_ACTIVATE)
         assert _until(lambda: camera.matched() and node.ready(), 10.0)
         for i in range(5, 9):
             camera.publish(i, stamps[i])
@@ -236,23 +263,63 @@ def test_every_lifecycle_transition_keeps_the_map_until_cleanup_saves_it(ros, ro
         assert node.runtime is runtime and len(timestamps) == 8  # the same map went on
         np.testing.assert_allclose(timestamps, np.delete(stamps, 4), atol=1e-6)
 
-        assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
-        assert node.trigger_cleanup() == TransitionCallbackReturn.SUCCESS  # saves as a shutdown does
-        assert node._state_machine.current_state[0] == State.PRIMARY_STATE_UNCONFIGURED
+        assert lifecycle.set(Transition.TRANSITION_DEACTIVATE)
+        assert lifecycle.set(Transition.TRANSITION_CLEANUP)  # saves as a shutdown does
+        assert lifecycle.get() == State.PRIMARY_STATE_UNCONFIGURED
         assert node.runtime is None and node.exit_status == 0
         for name in ("trajectory.txt", "checkpoint.pt", "mesh.ply"):
             assert (out / name).is_file(), name
         assert len(read_tum(out / "trajectory.txt")) == 8
 
-        assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS  # again, with the kept parameters
+        assert lifecycle.set(Transition.TRANSITION_CONFIGURE)  # again, with the kept parameters
         assert node.settings.sync_queue_size == 12
-        assert node.trigger_shutdown() == TransitionCallbackReturn.SUCCESS
-        assert node.lifecycle_state == "finalized"
-        assert node._state_machine.current_state[0] == State.PRIMARY_STATE_FINALIZED
+        assert lifecycle.set(Transition.TRANSITION_INACTIVE_SHUTDOWN)
+        assert lifecycle.get() == State.PRIMARY_STATE_FINALIZED and node.lifecycle_state == "finalized"
     finally:
         spinner.close()
         driver.destroy_node()
         node.destroy_node()
+
+
+@pytest.mark.parametrize("shutdown_from", ["unconfigured", "active"])
+def test_a_bad_parameter_fails_configure_and_shutdown_ends_the_node_from_any_state(ros, shutdown_from):
+    from lifecycle_msgs.msg import State, Transition
+
+    node = SlamNode(parameter_overrides=_overrides({**SMALL_SLAM, "policy": "fast"}))  # not a policy
+    driver = Node("lifecycle_manager")
+    spinner = Spinner(node, driver)
+    lifecycle = LifecycleClient(driver, "/slam_node")
+    try:
+        assert not lifecycle.set(Transition.TRANSITION_CONFIGURE)  # refused, and says why
+        assert lifecycle.get() == State.PRIMARY_STATE_UNCONFIGURED and "'policy' = 'fast'" in node.configure_error
+        if shutdown_from == "active":
+            assert node.set_parameters([Parameter("policy", value="live")])[0].successful  # fixed while unconfigured
+            assert lifecycle.set(Transition.TRANSITION_CONFIGURE) and lifecycle.set(Transition.TRANSITION_ACTIVATE)
+            assert lifecycle.get() == State.PRIMARY_STATE_ACTIVE
+        shutdown = {"unconfigured": Transition.TRANSITION_UNCONFIGURED_SHUTDOWN,
+                    "active": Transition.TRANSITION_ACTIVE_SHUTDOWN}[shutdown_from]
+        assert lifecycle.set(shutdown)
+        assert lifecycle.get() == State.PRIMARY_STATE_FINALIZED and node.exit_status == 0
+    finally:
+        spinner.close()
+        driver.destroy_node()
+        node.destroy_node()
+
+
+def test_the_plain_node_is_active_through_its_lifecycle(ros):
+    from lifecycle_msgs.msg import State
+
+    node = start_node(parameter_overrides=_overrides(SMALL_SLAM))
+    driver = Node("observer")
+    spinner = Spinner(node, driver)
+    try:
+        assert LifecycleClient(driver, "/slam_node").get() == State.PRIMARY_STATE_ACTIVE and node.active
+    finally:
+        spinner.close()
+        driver.destroy_node()
+        node.destroy_node()
+    with pytest.raises(NodeParameterError, match=r"'policy' = 'fast'"):
+        start_node(parameter_overrides=_overrides({**SMALL_SLAM, "policy": "fast"}))
 
 
 # ================================================================================================= REP 105 end to end

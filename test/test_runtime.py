@@ -26,7 +26,7 @@ from eslam_core.config import load_config
 from eslam_core.evaluation.trajectory import ate, still_camera_ate
 from eslam_core.trajectory import Trajectory
 from eslam_core.outputs.export import load_checkpoint, map_mesh
-from eslam_core.outputs.mesh_worker import PackedSnapshot
+from eslam_core.runtime.mesher import PackedSnapshot
 from eslam_core.representation.field import SceneField
 from eslam_core.frames import pixel_directions_table, prepare_frame
 from eslam_core.mapping.scene_map import SceneMap, initial_extent

@@ -10,7 +10,6 @@ import builtins
 import errno
 import io
 import json
-import os
 import shutil
 from pathlib import Path
 
@@ -209,27 +208,25 @@ def test_eslam_mesh_on_a_full_disk_is_one_line_and_keeps_the_older_mesh(monkeypa
 
 
 def test_the_nodes_trigger_save_reports_one_line_and_the_node_goes_on(monkeypatch, tmp_path):
-    rclpy = pytest.importorskip("rclpy")
-    from std_srvs.srv import Trigger
+    """What the node's ~/save_* services answer (RuntimeHost.save): one line naming the file, the older file of
+    that name intact, and the node not failed."""
+    pytest.importorskip("rclpy")
+    import logging
 
-    from eslam_ros.slam_node import SlamNode
+    from eslam_ros.node_params import NodeSettings
+    from eslam_ros.node_threads import LogThrottle
+    from eslam_ros.runtime_host import RuntimeHost
 
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    rclpy.init(domain_id=1 + os.getpid() % 101)
-    node = SlamNode(parameter_overrides=[rclpy.parameter.Parameter("output_dir", value=str(tmp_path))])
-    try:
-        node.runtime = SavedRuntime()  # what a running node holds, with an empty map
-        old = tmp_path / "checkpoint.pt"
-        old.write_bytes(b"saved before")
-        disk = FullDisk(monkeypatch, ["checkpoint.pt"])
-        response = node._srv_save_checkpoint(Trigger.Request(), Trigger.Response())
-        assert not response.success and disk.failures == 1
-        assert_one_line(response.message, old)
-        assert old.read_bytes() == b"saved before" and node.failed is None
-        response = node._srv_save_trajectory(Trigger.Request(), Trigger.Response())  # a small one still fits
-        assert response.success, response.message
-        assert files_in(tmp_path) == {"checkpoint.pt", "trajectory.txt"}
-    finally:
-        node.runtime = None
-        node.destroy_node()
-        rclpy.try_shutdown()
+    host = RuntimeHost(NodeSettings(output_dir=str(tmp_path)), load_config("fast"), logging.getLogger("test"),
+                       LogThrottle(1.0), poses=None)
+    host.runtime = SavedRuntime()  # what a running node holds, with an empty map
+    old = tmp_path / "checkpoint.pt"
+    old.write_bytes(b"saved before")
+    disk = FullDisk(monkeypatch, ["checkpoint.pt"])
+    saved, message = host.save("checkpoint.pt", lambda rt, p: rt.save_checkpoint(p))
+    assert not saved and disk.failures == 1
+    assert_one_line(message, old)
+    assert old.read_bytes() == b"saved before" and host.failed is None
+    saved, message = host.save("trajectory.txt", lambda rt, p: rt.save_trajectory(p))  # a small one still fits
+    assert saved, message
+    assert files_in(tmp_path) == {"checkpoint.pt", "trajectory.txt"}

@@ -110,7 +110,7 @@ class SLAMRuntime(Protocol):
     def health(self) -> Health: ...
 
     def mesh_snapshot(self, have: set):
-        """What the mesh process needs of the current map (outputs/mesh_worker.py: a MeshSnapshot, or the
+        """What the mesh process needs of the current map (runtime/mesher.py: a MeshSnapshot, or the
         PackedSnapshot of one made in another process): the field, the
         keyframe poses and the depth images of the keyframes whose ids are not in `have`. Much lighter than
         `snapshot()` (no keyframe images, no trajectory); raises EmptyMeshError before the first keyframe."""

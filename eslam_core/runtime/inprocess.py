@@ -26,13 +26,12 @@ from eslam_core.config import Config
 from eslam_core.slam import SLAM, loaded_slam
 from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
+from eslam_core.runtime.mesher import snapshot_for_meshing
 from eslam_core.runtime.api import Health, PoseUpdate, RuntimeCrashed, RuntimeSetupError, check_frame, check_policy, \
     peak_rss_mb
 from eslam_core.runtime.parent_state import ParentState
 
 log = logging.getLogger("eslam")
-
-DEFAULT_CAPACITY = 8
 
 
 class _StepInterrupted(Exception):
@@ -41,15 +40,13 @@ class _StepInterrupted(Exception):
 
 class InProcessRuntime(SavingMixin):
     def __init__(self, cfg: Config, intrinsics: Intrinsics, policy: str = "offline", threads: Optional[int] = None,
-                 capacity: int = DEFAULT_CAPACITY, checkpoint: Optional[str] = None):
+                 checkpoint: Optional[str] = None):
         self.cfg = cfg
         self.checkpoint = checkpoint  # a saved map to start from (see loaded_slam); a reset starts an empty one
         self.intrinsics = intrinsics
         self.policy = check_policy(policy)
         self.threads = threads or cfg.run.threads or None
-        if capacity < 1:
-            raise RuntimeSetupError(f"the input buffer needs at least one slot, got capacity={capacity}")
-        self.capacity = capacity
+        self.capacity = cfg.runtime.capacity  # (checked with the config)
         self._cond = threading.Condition()  # guards the input queue, the flags below and the counts
         self._inputs: deque = deque()
         self._closing = self._stop_now = False
@@ -159,8 +156,6 @@ class InProcessRuntime(SavingMixin):
             return SLAM.from_state_dict(self.slam.state_dict())
 
     def mesh_snapshot(self, have: set):
-        from eslam_core.outputs.mesh_worker import snapshot_for_meshing
-
         with self._slam_lock:  # (held for a whole step: the map between two steps)
             return snapshot_for_meshing(self.slam.map, have)
 

@@ -50,11 +50,13 @@ import torch.multiprocessing as tmp
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.child_process import EXIT_ORPHANED, spawned_with_stop_signals_blocked
-from eslam_core.config import Config, RuntimeConfig
+from eslam_core.config import Config
 from eslam_core.frames import working_images, working_intrinsics
 from eslam_core.slam import SLAM, loaded_trajectory
 from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
+from eslam_core.outputs.mesh import EmptyMeshError
+from eslam_core.runtime.mesher import snapshot_for_meshing
 from eslam_core.runtime.api import Health, PoseUpdate, RuntimeCrashed, RuntimeSetupError, \
     check_frame, check_policy, peak_rss_mb
 from eslam_core.runtime.parent_state import ParentState
@@ -64,7 +66,6 @@ from eslam_core.runtime.workers import Channels, MapperFinished, MapperSnapshot,
 
 log = logging.getLogger("eslam")
 
-DEFAULT_CAPACITY = 8  # frames in the input ring
 START_TIMEOUT_S = 180.0  # spawning imports torch in each worker: seconds on a loaded machine
 SNAPSHOT_TIMEOUT_S = 120.0  # the mapper answers between two optimiser iterations (seconds at most)
 STOP_GRACE_S = 30.0  # after "stop now": one tracking frame plus one optimiser iteration
@@ -154,32 +155,16 @@ def read_snapshot(state: str | bytes) -> dict:
 
 class MultiProcessRuntime(SavingMixin):
     def __init__(self, cfg: Config, intrinsics: Intrinsics, policy: str = "offline", threads: Optional[int] = None,
-                 capacity: int = DEFAULT_CAPACITY, publish_every: int = RuntimeConfig.publish_every,
-                 lend_threads: bool = True, keyframe_backlog: Optional[int] = None,
-                 catch_up_iterations: Optional[int] = None, checkpoint: Optional[str] = None):
-        """threads: torch threads per worker; capacity: frames in the input ring; publish_every: optimiser
-        iterations between mid-step map publications (0 = only after each step); lend_threads: an idle worker's
-        threads go to the busy one;
-        keyframe_backlog: keyframes that may wait for the mapper before the older ones are merged into the newest
-        one's step (None = every keyframe gets a step; the live policy always uses 0); catch_up_iterations: once
-        newer keyframes wait, a mapping step ends after this many iterations divided by their number (None = never).
-        See workers.py."""
+                 checkpoint: Optional[str] = None):
+        """threads: torch threads per worker. The rest of the tuning is the config's runtime section (capacity:
+        frames in the input ring; publish_every, lend_threads, keyframe_backlog, catch_up_iterations, ...: see
+        config.py and workers.py), checked with the config."""
         self.cfg = cfg
         self.intrinsics = intrinsics
         self.policy = check_policy(policy)
         self.threads = threads or cfg.run.threads or default_threads()
-        if self.threads < 1 or capacity < 1 or publish_every < 0:
-            raise RuntimeSetupError(f"threads ({self.threads}) and capacity ({capacity}) must be at least 1, "
-                                    f"publish_every ({publish_every}) at least 0")
-        self.capacity = capacity
-        self.publish_every = publish_every
-        self.lend_threads = lend_threads
-        if keyframe_backlog is not None and keyframe_backlog < 0:
-            raise RuntimeSetupError(f"keyframe_backlog must be >= 0 or None (no limit), got {keyframe_backlog}")
-        self.keyframe_backlog = keyframe_backlog
-        if catch_up_iterations is not None and catch_up_iterations < 1:
-            raise RuntimeSetupError(f"catch_up_iterations must be >= 1 or None (never), got {catch_up_iterations}")
-        self.catch_up_iterations = catch_up_iterations
+        if self.threads < 1:
+            raise RuntimeSetupError(f"threads ({self.threads}) must be at least 1")
         self.checkpoint = checkpoint  # a saved map the first epoch starts from; checked here, loaded by the workers
         self._loaded_trajectory = loaded_trajectory(checkpoint, cfg, intrinsics).state_dict() if checkpoint \
             else None
@@ -216,7 +201,7 @@ class MultiProcessRuntime(SavingMixin):
                                     "a new map)")
         self._started = True
         ctx = tmp.get_context("spawn")
-        self._ring = FrameRing(self.capacity, self.work_intr.height, self.work_intr.width, ctx)
+        self._ring = FrameRing(self.cfg.runtime.capacity, self.work_intr.height, self.work_intr.width, ctx)
         self._board = HealthBoard()
         self._control = Control()
         self._map_meta = MapMeta(ctx)
@@ -227,9 +212,8 @@ class MultiProcessRuntime(SavingMixin):
         self._semaphores = semaphore_names(self._ring.cond, self._map_meta.lock, *self._queues.values())
         self._snapshot_dir = snapshot_directory()
         setup = WorkerSetup(self.cfg, self.intrinsics, self.policy, self.threads, os.getpid(),
-                            logging.getLogger("eslam").getEffectiveLevel(), self.publish_every,
-                            os.environ.get("ESLAM_FAULT", ""), self.lend_threads, self.keyframe_backlog,
-                            self.catch_up_iterations, self.checkpoint)
+                            logging.getLogger("eslam").getEffectiveLevel(), os.environ.get("ESLAM_FAULT", ""),
+                            self.checkpoint)
         self._errors, self._processes, error_ends = {}, {}, {}
         for name, main in (("tracker", tracker_main), ("mapper", mapper_main)):
             self._errors[name], error_ends[name] = ctx.Pipe(duplex=False)
@@ -522,9 +506,6 @@ class MultiProcessRuntime(SavingMixin):
                 raise RuntimeCrashed("mapper", f"the mapper did not send {what} within {SNAPSHOT_TIMEOUT_S:.0f} s")
 
     def mesh_snapshot(self, have: set):
-        from eslam_core.outputs.mesh import EmptyMeshError
-        from eslam_core.outputs.mesh_worker import snapshot_for_meshing
-
         if self._final is not None:
             return snapshot_for_meshing(self._final.map, have)
         self._check_running()

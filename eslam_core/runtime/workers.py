@@ -52,7 +52,7 @@ import numpy as np
 import torch
 
 from eslam_core.camera import Frame, Intrinsics
-from eslam_core.config import Config, RuntimeConfig
+from eslam_core.config import Config
 from eslam_core.device import peak_memory_mb as device_peak_mb, resolve_device
 from eslam_core.child_process import become_child
 from eslam_core.cpu import PeriodicRelease, lower_priority
@@ -64,6 +64,7 @@ from eslam_core.mapping.scene_map import SceneMap, surface_points
 from eslam_core.native import load_kernel
 from eslam_core.atomic import atomic_output
 from eslam_core.representation.field import SceneField
+from eslam_core.runtime.mesher import PackedSnapshot, snapshot_for_meshing
 from eslam_core.runtime.api import peak_rss_mb
 from eslam_core.runtime.budget import MappingBudget
 from eslam_core.slam import loaded_slam
@@ -187,16 +188,7 @@ class WorkerSetup:
     threads: int
     parent_pid: int
     log_level: int
-    publish_every: int = RuntimeConfig.publish_every  # optimiser iterations between mid-step publications (0: none)
-    faults: str = ""
-    lend_threads: bool = True  # an idle worker's threads go to the busy one (see CoreShare)
-    # Keyframes allowed to wait while the mapper maps one; beyond that the older ones join the window of the newest
-    # without a step of their own. None: every keyframe gets its step (offline); the live policy uses 0.
-    keyframe_backlog: Optional[int] = None
-    # Once newer keyframes wait, the current mapping step ends after this many iterations divided by their number
-    # (None: never; the step runs all of them), so that a mapper slower than the tracker stays within about one
-    # keyframe of it and spends its time on the newest keyframes.
-    catch_up_iterations: Optional[int] = None
+    faults: str = ""  # ESLAM_FAULT (FaultPlan)
     checkpoint: Optional[str] = None  # a saved map the first epoch starts from (see slam.loaded_slam)
 
 
@@ -378,7 +370,7 @@ class TrackerWorker:
         self.tracked = 0
         self.finished = False
         self.cores = CoreShare(ch.board, Counter.TRACKER_BUSY, Counter.MAPPER_BUSY, Counter.TRACKER_BEAT,
-                               setup.threads, setup.lend_threads)
+                               setup.threads, setup.cfg.runtime.lend_threads)
 
     def _new_state(self) -> None:
         # The caller's copy of the trajectory has every field; this one what tracking reads back.
@@ -595,9 +587,9 @@ class MapperWorker:
         self.publishing_mid_step = False
         self.first_map_at: Optional[int] = None  # the warm-up iteration that attaches the tracker, if not its end
         self.cores = CoreShare(ch.board, Counter.MAPPER_BUSY, Counter.TRACKER_BUSY, Counter.MAPPER_BEAT,
-                               setup.threads, setup.lend_threads)
+                               setup.threads, setup.cfg.runtime.lend_threads)
         self.budget = MappingBudget.of(self.cfg.mapping.iterations, self.live, self.cfg.runtime.idle_iterations,
-                                       setup.catch_up_iterations, setup.keyframe_backlog)
+                                       self.cfg.runtime.catch_up_iterations, self.cfg.runtime.keyframe_backlog)
         import_optimiser_code()
 
     def _new_state(self) -> None:
@@ -786,7 +778,8 @@ class MapperWorker:
         if control.stopping or control.exiting or control.epoch != self.epoch:
             raise Interrupted
         self.cores.update()
-        if self.publishing_mid_step and self.setup.publish_every and iterations % self.setup.publish_every == 0:
+        every = self.cfg.runtime.publish_every
+        if self.publishing_mid_step and every and iterations % every == 0:
             self._publish(step_done=False)
         if iterations == self.first_map_at:  # the warm-up's keyframe counts as mapped from here on
             self._publish()
@@ -805,8 +798,6 @@ class MapperWorker:
     def _mesh_snapshot(self, req: MeshRequest):
         """The map for the mesh process, made here: the parent only passes it on (a whole `_snapshot` of the
         state took the node 1-3 s per mesh on 2 cores, and stalled its poses)."""
-        from eslam_core.outputs.mesh_worker import PackedSnapshot, snapshot_for_meshing
-
         if req.epoch != self.epoch or self.scene is None:
             return None
         return PackedSnapshot.of(snapshot_for_meshing(self.scene, req.have))
