@@ -53,18 +53,17 @@ from visualization_msgs.msg import MarkerArray
 
 from eslam_core.config import ConfigError
 from eslam_core.runtime import RuntimeCrashed
-from eslam_ros.mesh_publication import MESH_POLL_S, MeshPublication
-from eslam_ros.node_params import NodeParameterError
-from eslam_ros.parameters import declare_node_parameters, read_parameters
-from eslam_ros.qos import input_qos, latched_qos, use_shipped_fastdds_profile
-
+from eslam_ros.diagnostics import InputMonitor, StatusInputs, StatusReport, health_values
 from eslam_ros.input_pipeline import (DEPTH, RGB, STREAM_NAMES, AcceptedFrame, InputPipeline, PipelineEvent,
                                      SkippedInput, StreamRestart, configured_intrinsics)
+from eslam_ros.mesh_publication import MESH_POLL_S, MeshPublication
+from eslam_ros.node_params import NodeParameterError
 from eslam_ros.node_threads import CallbackGate, LogThrottle, PeriodicThread, StopRequest, node_executor, spin_once
+from eslam_ros.parameters import declare_node_parameters, read_parameters
 from eslam_ros.pose_output import PoseOutput
-from eslam_ros.runtime_host import EXIT_FAILED, EXIT_OK, LIVE_DRAIN_TIMEOUT_S, RuntimeHost
-from eslam_ros.diagnostics import InputMonitor, StatusInputs, StatusReport, health_values
+from eslam_ros.qos import input_qos, latched_qos, use_shipped_fastdds_profile
 from eslam_ros.robot_odometry import RobotOdometry
+from eslam_ros.runtime_host import EXIT_FAILED, EXIT_OK, LIVE_DRAIN_TIMEOUT_S, RuntimeHost
 from eslam_ros.tf_chain import TfOdometry, select_setup
 
 EXIT_BAD_PARAMETERS, EXIT_INTERRUPTED = 2, 130

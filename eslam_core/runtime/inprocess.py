@@ -7,7 +7,8 @@ up to date after every step, so `trajectory()` never waits for the step in progr
 made from a copy of the SLAM state taken between two steps.
 
 "Stop now" (`close(drain=False)`, `reset()`) abandons the mapping step in progress after its current iteration
-(`SLAM.after_mapping_iteration`), so that a long warm-up does not hold up a shutdown. torch's thread count is process-wide: `threads` (or `run.threads`) sets it for the whole process.
+(`SLAM.after_mapping_iteration`), so that a long warm-up does not hold up a shutdown. torch's thread count is
+process-wide: `threads` (or `run.threads`) sets it for the whole process.
 """
 from __future__ import annotations
 

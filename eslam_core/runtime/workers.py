@@ -400,7 +400,7 @@ class TrackerWorker:
             if self.ch.control.stopping or self.ch.ring.drained():
                 self._finish()
                 continue
-            waiting = bool(self.session.frontend.unindexed)  # keyframes to index for relocalization while idle
+            waiting = self.session.unindexed  # keyframes to index for relocalization while idle
             frame, skipped = self.ch.ring.take(self.live, 0.0 if waiting else POLL_S)
             if skipped:
                 self.ch.board.add(Counter.DROPPED_BY_TRACKER, skipped)
@@ -416,7 +416,7 @@ class TrackerWorker:
 
     def _index_idle(self) -> bool:
         with self.ch.board.timed(Counter.TRACK_INDEX_S):
-            return self.session.frontend.index_next()
+            return self.session.index_next()
 
     def _sync_epoch(self) -> None:
         epoch = self.ch.control.epoch

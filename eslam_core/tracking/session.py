@@ -91,6 +91,14 @@ class TrackingSession:
         """A new keyframe, for relocalization (after it went to the map: the mapper need not wait for indexing)."""
         self.frontend.remember(kf)
 
+    @property
+    def unindexed(self) -> bool:
+        """New keyframes wait for their relocalization features (`index_next` them while idle)."""
+        return bool(self.frontend.unindexed)
+
+    def index_next(self) -> bool:
+        return self.frontend.index_next()
+
     def apply(self, corrections: PoseCorrections) -> None:
         """Mapping's corrections: every frame moves with its keyframe (trajectory.py), the front end predicts and
         relocalizes from the refined poses and forgets the dropped keyframes."""
