@@ -135,7 +135,7 @@ def iteration_benchmark(cfg, ds, repeats: int, native: bool, grow: float = 0.0) 
         c2w = params_to_pose(t, q)
         dirs = dirs_cam[pix] @ c2w[:3, :3].T
         track.append(staged_iteration(fixed, c2w[:3, 3].expand(len(pix), 3), dirs, depth[pix],
-                                      frame.rgb.reshape(-1, 3)[pix], cfg, cfg.tracking.weights, optim))
+                                      frame.rgb.reshape(-1, 3)[pix], cfg, cfg.render_tracker.weights, optim))
         track[-1]["lookup"] += fold_s / max(cfg.tracking.iterations, 1)
 
     # The fast preset's tracker: a whole frame's Gauss-Newton alignment (all its iterations), against the newest

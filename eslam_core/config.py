@@ -141,68 +141,102 @@ class LossWeights:
 
 @dataclass
 class TrackingConfig:
-    # "render": the paper's tracker, Adam on the rendering losses. "sdf": Gauss-Newton alignment of the
-    # back-projected depth to the map's SDF (one SDF query per pixel instead of a rendered ray; the `fast` preset).
+    """The front end, and what both trackers share."""
+    # "render": the paper's tracker, Adam on the rendering losses (render_tracker section). "sdf": Gauss-Newton
+    # alignment of the back-projected depth to the map's SDF (sdf_tracker section; one SDF query per pixel instead of
+    # a rendered ray; the `fast` preset).
     method: str = "render"
     # "track": every frame is tracked against the map. "external": frames take their pose from the external
     # odometry (Frame.odom_pose, expressed in the map frame by the first frame) and are not tracked: mapping only.
     mode: str = "track"
     iterations: int = 8
-    rays: int = 2000
+    rays: int = 2000  # rays (render) or depth points (sdf) per iteration
+    border: int = 75  # pixels ignored at the image border
+    constant_velocity: bool = True
+
+    def validate(self, check) -> None:
+        check(self.method in ("render", "sdf"), "tracking.method", "must be 'render' or 'sdf'")
+        check(self.mode in ("track", "external"), "tracking.mode",
+              "must be 'track' or 'external' (poses from external odometry, mapping only)")
+        check(self.iterations >= 0, "tracking.iterations", "must be >= 0")
+        check(self.rays > 0, "tracking.rays", "must be positive")
+        check(self.border >= 0, "tracking.border", "must be >= 0")
+
+
+@dataclass
+class RenderTrackerConfig:
+    """The paper's rendering tracker (tracking.method render): Adam on the rendering losses."""
     lr_rotation: float = 0.001
     lr_translation: float = 0.002
-    border: int = 75  # pixels ignored at the image border
     outlier_factor: float = 10.0  # drop rays whose depth error exceeds this times the batch median
-    constant_velocity: bool = True
-    # "render" method: draw rays only from pixels whose depth point (at the predicted pose) lies in observed space,
-    # where the map has been fitted (observed.py), unless that leaves fewer than half of them. Off in the paper.
+    # Draw rays only from pixels whose depth point (at the predicted pose) lies in observed space, where the map has
+    # been fitted (observed.py), unless that leaves fewer than half of them. Off in the paper.
     observed_only: bool = False
-    # The SDF tracker aligns to the surface of keyframes followed by this many mapped keyframes (settled space,
-    # observed.py): one mapping step leaves new surface rough and the steps of the next keyframes, whose windows
-    # hold it, finish the fit. Where settled space holds under half of the frame's points in observed space (the
-    # camera turns to new space faster than it settles) it aligns to all of those. `live`, lock-step on the 300 ICL
-    # frames: ATE 0.42 cm with 1, 0.17 with 3; 7-Scenes 3.16 / 3.19 cm (session 19, README).
-    observed_after: int = 3
     weights: LossWeights = field(default_factory=lambda: LossWeights(10.0, 200.0, 50.0, 1.0, 5.0))
-    # The "sdf" method (sdf_tracking.py): robust scales of its geometric (metres) and map-colour (grey level in
-    # [0, 1]) residuals and the weight of the latter (0 = not used); the same for its photometric residual against
-    # the newest keyframe's images, aligned coarse to fine over `pyramid_levels` image levels (photometric.py).
+
+    def validate(self, check) -> None:
+        check(self.lr_rotation >= 0 and self.lr_translation >= 0, "render_tracker.lr_rotation", "must be >= 0")
+        check(self.outlier_factor > 0, "render_tracker.outlier_factor", "must be positive")
+        self.weights.validate(check, "render_tracker.weights")
+
+
+@dataclass
+class SDFTrackerConfig:
+    """The SDF tracker (tracking.method sdf, sdf_tracker.py): robust scales of its geometric (metres) and map-colour
+    (grey level in [0, 1]) residuals and the weight of the latter (0 = not used); the same for its photometric
+    residual against the newest keyframe's images, aligned coarse to fine over `pyramid_levels` image levels
+    (photometric.py)."""
     huber: float = 0.01
     color_huber: float = 0.1
     color_weight: float = 1.0
     photometric_huber: float = 0.05
     photometric_weight: float = 1.0
     pyramid_levels: int = 3
-    # The starting pose from frame-to-frame RGB-D odometry (odometry.py) on images about this many pixels wide,
-    # where it succeeds, instead of the constant-velocity prediction; 0 = constant velocity only (the paper).
-    odometry_width: int = 0
-    # Its Gauss-Newton iterations per pyramid level, the finest level first (OpenCV's default: 7, 7, 7, 10).
-    odometry_iterations: list[int] = field(default_factory=lambda: [7, 7, 7, 10])
+    # It aligns to the surface of keyframes followed by this many mapped keyframes (settled space, observed.py): one
+    # mapping step leaves new surface rough and the steps of the next keyframes, whose windows hold it, finish the
+    # fit. Where settled space holds under half of the frame's points in observed space (the camera turns to new
+    # space faster than it settles) it aligns to all of those. `live`, lock-step on the 300 ICL frames: ATE 0.42 cm
+    # with 1, 0.17 with 3; 7-Scenes 3.16 / 3.19 cm (session 19, README).
+    observed_after: int = 3
 
     def validate(self, check) -> None:
-        check(self.method in ("render", "sdf"), "tracking.method", "must be 'render' or 'sdf'")
-        check(self.odometry_width == 0 or self.odometry_width >= 64, "tracking.odometry_width",
-              "must be 0 (off) or at least 64 pixels (the odometry's image pyramid needs 4 levels)")
-        check(len(self.odometry_iterations) == 4 and all(isinstance(n, int) and not isinstance(n, bool) and n >= 1
-                                                         for n in self.odometry_iterations),
-              "tracking.odometry_iterations", "must be 4 positive integers (iterations per level, finest first)")
-        check(self.mode in ("track", "external"), "tracking.mode",
-              "must be 'track' or 'external' (poses from external odometry, mapping only)")
-        check(self.huber > 0, "tracking.huber", "must be positive (metres)")
-        check(self.observed_after >= 1, "tracking.observed_after",
+        check(self.huber > 0, "sdf_tracker.huber", "must be positive (metres)")
+        check(self.observed_after >= 1, "sdf_tracker.observed_after",
               "must be >= 1 (1: the tracker aligns to all of observed space)")
-        check(self.color_huber > 0, "tracking.color_huber", "must be positive (grey level)")
-        check(self.color_weight >= 0, "tracking.color_weight", "must be >= 0 (0 disables the map's colour term)")
-        check(self.photometric_huber > 0, "tracking.photometric_huber", "must be positive (grey level)")
-        check(self.photometric_weight >= 0, "tracking.photometric_weight",
+        check(self.color_huber > 0, "sdf_tracker.color_huber", "must be positive (grey level)")
+        check(self.color_weight >= 0, "sdf_tracker.color_weight", "must be >= 0 (0 disables the map's colour term)")
+        check(self.photometric_huber > 0, "sdf_tracker.photometric_huber", "must be positive (grey level)")
+        check(self.photometric_weight >= 0, "sdf_tracker.photometric_weight",
               "must be >= 0 (0 disables the keyframe photometric term)")
-        check(1 <= self.pyramid_levels <= 6, "tracking.pyramid_levels", "must be between 1 and 6")
-        check(self.iterations >= 0, "tracking.iterations", "must be >= 0")
-        check(self.rays > 0, "tracking.rays", "must be positive")
-        check(self.lr_rotation >= 0 and self.lr_translation >= 0, "tracking.lr_rotation", "must be >= 0")
-        check(self.border >= 0, "tracking.border", "must be >= 0")
-        check(self.outlier_factor > 0, "tracking.outlier_factor", "must be positive")
-        self.weights.validate(check, "tracking.weights")
+        check(1 <= self.pyramid_levels <= 6, "sdf_tracker.pyramid_levels", "must be between 1 and 6")
+
+
+@dataclass
+class OdometryConfig:
+    """The starting pose from frame-to-frame RGB-D odometry (tracking/odometry.py) on images about `width` pixels
+    wide, where it succeeds, instead of the constant-velocity prediction; width 0 = constant velocity only (the
+    paper)."""
+    width: int = 0
+    # Its Gauss-Newton iterations per pyramid level, the finest level first (OpenCV's default: 7, 7, 7, 10).
+    iterations: list[int] = field(default_factory=lambda: [7, 7, 7, 10])
+
+    def validate(self, check) -> None:
+        check(self.width == 0 or self.width >= 64, "odometry.width",
+              "must be 0 (off) or at least 64 pixels (the odometry's image pyramid needs 4 levels)")
+        check(len(self.iterations) == 4 and all(isinstance(n, int) and not isinstance(n, bool) and n >= 1
+                                                for n in self.iterations),
+              "odometry.iterations", "must be 4 positive integers (iterations per level, finest first)")
+
+
+# Keys that moved to the section of the part that reads them: (old section, old key) -> new "section.key".
+MOVED_KEYS = {
+    **{("tracking", k): f"render_tracker.{k}" for k in ("lr_rotation", "lr_translation", "outlier_factor",
+                                                        "observed_only", "weights")},
+    **{("tracking", k): f"sdf_tracker.{k}" for k in ("huber", "color_huber", "color_weight", "photometric_huber",
+                                                     "photometric_weight", "pyramid_levels", "observed_after")},
+    ("tracking", "odometry_width"): "odometry.width",
+    ("tracking", "odometry_iterations"): "odometry.iterations",
+}
 
 
 @dataclass
@@ -432,6 +466,9 @@ class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    render_tracker: RenderTrackerConfig = field(default_factory=RenderTrackerConfig)
+    sdf_tracker: SDFTrackerConfig = field(default_factory=SDFTrackerConfig)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
     run: RunConfig = field(default_factory=RunConfig)
@@ -567,8 +604,25 @@ def _build(cls, data: dict, prefix: str, source: str):
     return cls(**kwargs)
 
 
-def config_from_dict(data: dict, source: str = "<dict>") -> Config:
-    return _build(Config, data, "", source).validate(source)
+def moved_keys(data: dict, source: str, migrate: bool) -> dict:
+    """`data` with the keys of MOVED_KEYS at their new place (`migrate`: a checkpoint's own config), or a
+    ConfigError naming the first old key and its new name (a user's file or override)."""
+    data = copy.deepcopy(data)
+    for (section, key), new in MOVED_KEYS.items():
+        old = data.get(section)
+        if not isinstance(old, dict) or key not in old:
+            continue
+        if not migrate:
+            raise ConfigError(f"{source}: '{section}.{key}' is now '{new}' (each section of the config belongs to "
+                              f"the part that reads it); rename it")
+        new_section, new_key = new.split(".")
+        data.setdefault(new_section, {})[new_key] = old.pop(key)
+    return data
+
+
+def config_from_dict(data: dict, source: str = "<dict>", migrate: bool = False) -> Config:
+    """`migrate`: move the keys of an older layout (MOVED_KEYS) instead of refusing them."""
+    return _build(Config, moved_keys(data, source, migrate), "", source).validate(source)
 
 
 def load_config(path_or_preset: str | Path, overrides: Optional[dict] = None) -> Config:

@@ -86,7 +86,7 @@ def check_compatible(state: dict, cfg: Config, intrinsics: Optional[Intrinsics],
     if missing:
         raise CheckpointError(f"{path} is damaged (incomplete map: no {', '.join(missing)}); {RERUN}")
     try:
-        saved = config_from_dict(state["config"], "its config")
+        saved = config_from_dict(state["config"], "its config", migrate=True)
         saved_intrinsics = Intrinsics(**state["intrinsics"])
     except (ValueError, TypeError) as e:
         raise CheckpointError(f"{path} is damaged (invalid settings inside: {_first_line(e)}); {RERUN}") from None

@@ -96,7 +96,7 @@ class SLAM:
                                   f"{CHECKPOINT_VERSION}); re-run `eslam run` to produce a new checkpoint")
         # A checkpoint runs where it is loaded (`device`), not necessarily where it was made (that GPU may be absent).
         cfg = dict(state["config"], run=dict(state["config"].get("run", {}), device=device))
-        slam = SLAM(config_from_dict(cfg, "checkpoint"), Intrinsics(**state["intrinsics"]))
+        slam = SLAM(config_from_dict(cfg, "checkpoint", migrate=True), Intrinsics(**state["intrinsics"]))
         slam.map.load_state_dict(state["map"])
         slam.tracking.trajectory = TrackedTrajectory.from_state_dict(state["trajectory"])
         slam.tracking.frontend.start_lost(slam.map.keyframes)

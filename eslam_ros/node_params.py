@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Union
 
-from eslam_core.config import Config, ConfigError, config_from_dict, load_config
+from eslam_core.config import MOVED_KEYS, Config, ConfigError, config_from_dict, load_config
 
 ESLAM_PREFIX = "eslam."
 # A value a ROS 2 parameter can hold (None = PARAMETER_NOT_SET).
@@ -330,7 +330,14 @@ def unknown_eslam_parameters(given: Mapping[str, Any], cfg: Config) -> list[str]
 
 
 def unknown_parameter_error(name: str, cfg: Config) -> NodeParameterError:
-    """The error for an `eslam.*` parameter that names no configuration key, listing its section's keys."""
+    """The error for an `eslam.*` parameter that names no configuration key, listing its section's keys (or the
+    key's new name, for a key that moved to another section)."""
+    parts = name[len(ESLAM_PREFIX):].split(".")
+    moved = MOVED_KEYS.get((parts[0], parts[1])) if len(parts) >= 2 else None
+    if moved is not None:
+        new = ESLAM_PREFIX + ".".join([moved] + parts[2:])
+        return NodeParameterError(f"ESLAM parameter '{name}' is now '{new}' (each section of the config belongs to "
+                                  f"the part that reads it); rename it in the parameter file")
     section = name.rsplit(".", 1)[0] + "."
     siblings = sorted(k[len(section):] for k in config_parameters(cfg) if k.startswith(section))
     hint = f"known keys of {section[:-1]}: {', '.join(siblings)}" if siblings else (

@@ -1,6 +1,6 @@
 import pytest
 
-from eslam_core.config import ConfigError, list_presets, load_config
+from eslam_core.config import ConfigError, config_from_dict, list_presets, load_config
 
 
 def write(tmp_path, text, name="c.yaml"):
@@ -15,7 +15,7 @@ def test_presets_load_with_paper_values(preset):
     assert cfg.model.truncation == 0.06
     assert cfg.model.coarse_resolution == 0.24 and cfg.model.fine_geometry_resolution == 0.06
     assert cfg.model.fine_appearance_resolution == 0.03 and cfg.model.channels == 32
-    assert cfg.mapping.weights.truncation_center == 200 and cfg.tracking.weights.free_space == 10
+    assert cfg.mapping.weights.truncation_center == 200 and cfg.render_tracker.weights.free_space == 10
 
 
 def test_preset_specific_values():
@@ -60,11 +60,29 @@ def test_negative_truncation(tmp_path):
 
 
 def test_odometry_width_too_small_for_its_pyramid(tmp_path):
-    with pytest.raises(ConfigError, match=r"tracking\.odometry_width.*0 \(off\) or at least 64"):
-        load_config(write(tmp_path, "tracking: {odometry_width: 32}\n"))
-    assert load_config("live").tracking.odometry_width == 160 and load_config("icl").tracking.odometry_width == 0
-    with pytest.raises(ConfigError, match=r"tracking\.odometry_iterations.*4 positive integers"):
-        load_config(write(tmp_path, "tracking: {odometry_iterations: [4, 7, 7]}\n"))
+    with pytest.raises(ConfigError, match=r"odometry\.width.*0 \(off\) or at least 64"):
+        load_config(write(tmp_path, "odometry: {width: 32}\n"))
+    assert load_config("live").odometry.width == 160 and load_config("icl").odometry.width == 0
+    with pytest.raises(ConfigError, match=r"odometry\.iterations.*4 positive integers"):
+        load_config(write(tmp_path, "odometry: {iterations: [4, 7, 7]}\n"))
+
+
+def test_a_key_that_moved_to_its_consumers_section_is_refused_with_its_new_name(tmp_path):
+    with pytest.raises(ConfigError, match=r"'tracking\.odometry_width' is now 'odometry\.width'.*rename it"):
+        load_config(write(tmp_path, "tracking: {odometry_width: 160}\n"))
+    with pytest.raises(ConfigError, match=r"'tracking\.photometric_weight' is now 'sdf_tracker\.photometric_weight'"):
+        load_config("fast", {"tracking": {"photometric_weight": 0.5}})
+
+
+def test_a_checkpoints_config_of_the_older_layout_is_moved_not_refused():
+    old = load_config("fast").to_dict()
+    old["tracking"].update(odometry_width=80, color_weight=0.5, lr_rotation=0.004)
+    del old["odometry"], old["sdf_tracker"], old["render_tracker"]
+    cfg = config_from_dict(old, "checkpoint", migrate=True)
+    assert (cfg.odometry.width, cfg.sdf_tracker.color_weight, cfg.render_tracker.lr_rotation) == (80, 0.5, 0.004)
+    assert cfg.odometry.iterations == [7, 7, 7, 10]  # not in the old dict: the default
+    with pytest.raises(ConfigError, match="is now"):
+        config_from_dict(old, "a file")
 
 
 def test_fine_plane_coarser_than_coarse(tmp_path):

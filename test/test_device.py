@@ -196,7 +196,7 @@ def test_tracking_step_on_the_device(fitted, device, room_sequence):
     to the host."""
     cfg, field, dirs, _, _ = fitted
     cfg.tracking.iterations, cfg.tracking.rays = 40, 1000
-    cfg.tracking.lr_translation, cfg.tracking.lr_rotation = 0.003, 0.002
+    cfg.render_tracker.lr_translation, cfg.render_tracker.lr_rotation = 0.003, 0.002
     frame, start = perturbed_frame(cfg, room_sequence)
     ds = room_sequence
     result = Tracker(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width).track(field, frame, start)
@@ -208,7 +208,7 @@ def test_tracking_step_on_the_device(fitted, device, room_sequence):
 def test_sdf_tracking_on_the_device(fitted, device, room_sequence):
     """The fast tracker (SDF, map colour and the keyframe's images) on the device converges from 2 cm too."""
     cfg, field, dirs, keyframes, _ = fitted
-    cfg.tracking.iterations, cfg.tracking.rays, cfg.tracking.color_weight = 15, 2000, 1.0
+    cfg.tracking.iterations, cfg.tracking.rays, cfg.sdf_tracker.color_weight = 15, 2000, 1.0
     frame, start = perturbed_frame(cfg, room_sequence)
     tracker = SDFTracker(cfg, dirs, room_sequence.intrinsics)
     result = tracker.track(field, frame, start, keyframe=keyframes[1])

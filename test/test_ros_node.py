@@ -94,6 +94,8 @@ def test_parameters_override_the_preset_and_are_validated_by_the_config():
         resolve_config(settings, {"eslam.tracking.rays": "many"})
     with pytest.raises(NodeParameterError, match=r"unknown ESLAM parameter 'eslam\.tracking\.iteratons'.*iterations"):
         resolve_config(settings, {"eslam.tracking.iteratons": 3})
+    with pytest.raises(NodeParameterError, match=r"'eslam\.tracking\.odometry_width' is now 'eslam\.odometry\.width'"):
+        resolve_config(settings, {"eslam.tracking.odometry_width": 160})
     with pytest.raises(ConfigError, match="unknown preset 'nope'"):
         resolve_config(NodeSettings(preset="nope"), {})
 

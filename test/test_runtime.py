@@ -595,7 +595,7 @@ def test_pipelined_tracker_observes_only_what_the_map_is_fitted_to(room_sequence
     """Space of a keyframe the mapper has not mapped yet is not observed: its SDF is still the old map's. Nor is
     the newest mapped keyframe's (one step leaves new space rough), except the first one's after its warm-up.
     (`observed_after` 1: settled space is observed space, so `pending` holds exactly the keyframes not joined.)"""
-    cfg = fast_cfg(tracking={"method": "sdf", "observed_after": 1})
+    cfg = fast_cfg(tracking={"method": "sdf"}, sdf_tracker={"observed_after": 1})
     intr = room_sequence.intrinsics
     replica = workers.MapReplica(cfg, intr, pixel_directions_table(intr))
     frames = [prepare_frame(room_sequence[i], intr, cfg.camera) for i in (0, 4, 8)]
@@ -728,7 +728,7 @@ def test_the_tracker_starts_on_the_warm_up_map_after_first_map_after_iterations(
 def test_live_tracker_poses_frames_by_odometry_while_the_map_warms_up(room_sequence):
     """Live, a camera streams from its first frame: the frames that come while the first map warms up are posed by
     the frame-to-frame odometry (never keyframes) instead of being dropped, so tracking starts from a short motion."""
-    cfg = fast_cfg(mapping={"first_iterations": 400, "rays": 500}, tracking={"method": "sdf", "odometry_width": 160})
+    cfg = fast_cfg(mapping={"first_iterations": 400, "rays": 500}, tracking={"method": "sdf"}, odometry={"width": 160})
     frames = [room_sequence[i] for i in range(10)]
     rt = make_runtime(cfg, room_sequence.intrinsics, workers=2, policy="live", threads=1)
     updates = []

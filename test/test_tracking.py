@@ -44,8 +44,8 @@ def fitted_map(room_sequence):
 def test_tracking_recovers_perturbed_pose(fitted_map, room_sequence):
     cfg, field, dirs = fitted_map
     cfg.tracking.iterations = 100
-    cfg.tracking.lr_translation = 0.003
-    cfg.tracking.lr_rotation = 0.002
+    cfg.render_tracker.lr_translation = 0.003
+    cfg.render_tracker.lr_rotation = 0.002
     ds = room_sequence
     frame = prepare_frame(ds[9], ds.intrinsics, cfg.camera)
     gt = frame.gt_pose
@@ -110,7 +110,7 @@ def test_sdf_tracker_recovers_perturbed_pose(fitted_map, room_sequence, color_we
     cfg, field, dirs = fitted_map
     cfg.tracking.iterations = 15
     cfg.tracking.rays = 3000
-    cfg.tracking.color_weight = color_weight
+    cfg.sdf_tracker.color_weight = color_weight
     tracker, result, gt = _sdf_track_frame_9(cfg, field, dirs, room_sequence, [-0.5, 1.0, 0.4], 3.0,
                                              [-0.015, 0.02, 0.015], with_keyframe)
     assert (tracker._reference is not None) == with_keyframe
@@ -221,7 +221,7 @@ def test_constant_velocity_scales_with_the_time_gap():
 
 
 def test_observed_only_draws_rays_from_observed_space(fitted_map, room_sequence):
-    """tracking.observed_only: candidate pixels are those whose depth point lies in observed space, all of them
+    """render_tracker.observed_only: candidate pixels are those whose depth point lies in observed space, all of them
     when that would leave fewer than half."""
     from eslam_core.mapping.observed import ObservedSpace
 
@@ -264,7 +264,7 @@ def test_frame_odometry_measures_the_motion_between_two_frames_and_says_when_it_
 
     odometry = FrameOdometry(ds.intrinsics, 160)
     assert odometry.motion(odometry.frame(f9.rgb, f9.depth)) is None  # no reference yet
-    for odometry in (odometry, FrameOdometry(ds.intrinsics, 160, iterations=cfg.tracking.odometry_iterations)):
+    for odometry in (odometry, FrameOdometry(ds.intrinsics, 160, iterations=cfg.odometry.iterations)):
         metres, degrees = error_of(odometry)
         assert metres < 0.003 and degrees < 0.3
     assert odometry.motion(odometry.frame(f9.rgb, torch.zeros_like(f9.depth))) is None
@@ -279,7 +279,7 @@ def test_the_front_end_holds_a_jerk_that_the_constant_velocity_prediction_misses
     """The `live` and `fast` presets in lock-step track frames 0..last of the room, then get frame `jump_to` one
     frame gap later: the constant-velocity prediction is 5-8 cm and 2.5-5 degrees off (a jerk of a hand-held camera,
     or frames a live tracker skipped). The frame-to-frame odometry's start puts the pose within 1 cm / 0.5 degrees;
-    from the constant-velocity start alone (tracking.odometry_width 0) the SDF tracker lands 1.2-5 cm off or loses
+    from the constant-velocity start alone (odometry.width 0) the SDF tracker lands 1.2-5 cm off or loses
     the camera, with either preset."""
     from eslam_core.camera import Frame
     from eslam_core.slam import SLAM

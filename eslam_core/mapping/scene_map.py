@@ -99,7 +99,7 @@ class SceneMap:
         self.field = SceneField(self.extent, self.cfg.model, self.device)
         self.version += 1
         self.observed = ObservedSurfaces(self.extent, self.cfg.model.truncation, self.device,
-                                         self.cfg.tracking.observed_after)
+                                         self.cfg.sdf_tracker.observed_after)
         log.info("map: %d parameters (%.1f MB) over %s", self.field.parameter_count(), self.field.nbytes() / 2**20,
                  np.round(self.extent, 3).tolist())
 

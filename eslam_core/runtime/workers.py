@@ -328,7 +328,7 @@ class MapReplica:
         self.field = SceneField(extent, self.cfg.model, self.device)
         self.version += 1
         self.observed = ObservedSurfaces(extent, self.cfg.model.truncation, self.device,
-                                         self.cfg.tracking.observed_after)
+                                         self.cfg.sdf_tracker.observed_after)
 
     def attach(self, extent: np.ndarray) -> None:
         """The mapper's map over `extent` (grown, or as started): a field of that size to copy it into."""

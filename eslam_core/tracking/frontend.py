@@ -3,7 +3,7 @@ keyframe.
 
 Prediction: the motion of an external odometry between the last frame and this one when frames carry `odom_pose`,
 else the motion measured by frame-to-frame RGB-D odometry from the last well-tracked frame
-(`tracking.odometry_width`, odometry.py) where it succeeds, else constant velocity (scaled by the time gaps) from
+(`odometry.width`, odometry.py) where it succeeds, else constant velocity (scaled by the time gaps) from
 the last well-tracked frames, else the last pose. Tracking refines the prediction against the map (the paper's
 rendering tracker or the fast SDF alignment); with `tracking.mode: external` the odometry's pose (expressed in the
 map frame by the first frame) is taken as it is. A pose is re-orthonormalised where it is made, and a diverged
@@ -115,9 +115,8 @@ class TrackingFrontEnd:
         self._loaded_unindexed = False
         self.fallback_pose = np.eye(4)
         self.odometry = None  # frame-to-frame odometry, its reference the last well-tracked frame
-        if cfg.tracking.odometry_width > 0 and self.tracker is not None:
-            self.odometry = FrameOdometry(intr, cfg.tracking.odometry_width, cfg.camera.max_depth,
-                                          cfg.tracking.odometry_iterations)
+        if cfg.odometry.width > 0 and self.tracker is not None:
+            self.odometry = FrameOdometry(intr, cfg.odometry.width, cfg.camera.max_depth, cfg.odometry.iterations)
         self.places = None  # the keyframes for relocalization (a KeyframeDatabase), when enabled
         if cfg.relocalization.enabled and self.tracker is not None:
             from eslam_core.tracking.relocalization import KeyframeDatabase  # (OpenCV: loaded only when used)

@@ -42,9 +42,9 @@ class FrameOdometry:
     def __init__(self, intr: Intrinsics, width: int, max_depth: float = 0.0,
                  iterations: Optional[Sequence[int]] = None):
         if not hasattr(cv2, "Odometry"):
-            raise RuntimeError(f"tracking.odometry_width needs OpenCV >= 5.1 (cv2.Odometry), this is OpenCV "
+            raise RuntimeError(f"odometry.width needs OpenCV >= 5.1 (cv2.Odometry), this is OpenCV "
                                f"{cv2.__version__}: pip install 'opencv-python-headless>=5.1', or set "
-                               f"tracking.odometry_width: 0")
+                               f"odometry.width: 0")
         self.factor = max(1, round(intr.width / width))
         small = intr.scaled(1.0 / self.factor)
         K = np.array([[small.fx, 0, small.cx], [0, small.fy, small.cy], [0, 0, 1]], np.float32)

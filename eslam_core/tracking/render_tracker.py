@@ -1,6 +1,6 @@
 """Camera tracking (paper Sec. 3.4): optimise the pose of a frame against the fixed map.
 
-Translation and quaternion are optimised with Adam on ESLAM's loss (tracking weights), starting from a constant-
+Translation and quaternion are optimised with Adam on ESLAM's loss (`render_tracker.weights`), starting from a constant-
 velocity prediction. Each iteration renders rays from random pixels with depth inside the image border, drops rays
 whose depth error exceeds `outlier_factor` times the batch median, and the pose with the lowest loss over all
 iterations is kept, not the last one.
@@ -67,11 +67,11 @@ class Tracker:
               keyframe: Keyframe | None = None, map_version: int | None = None,
               free_prior: torch.Tensor | None = None) -> TrackingResult:
         """Rays are drawn from pixels whose depth point lies in `extent` (the map's) at the starting pose, from a
-        pool of 8 x `tracking.rays` of them; `observed` restricts the rays with `tracking.observed_only`
+        pool of 8 x `tracking.rays` of them; `observed` restricts the rays with `render_tracker.observed_only`
         (otherwise, as in the paper and the official code, any pixel with depth may be drawn); `keyframe` and
         `free_prior` are not used (Adam has no normal equations to tell the directions the frame constrains); `map_version` changes whenever the field's values do (None: unknown). Inputs and the result are host
         tensors; the work runs on the field's device."""
-        tc = self.cfg.tracking
+        tc, rc = self.cfg.tracking, self.cfg.render_tracker
         device = field.device
         self._on(device)
         rgb, depth = frame.rgb.to(device).reshape(-1, 3), frame.depth.to(device).reshape(-1)
@@ -80,7 +80,7 @@ class Tracker:
         with_depth = len(candidates)
         candidates, inside = draw_in_extent(candidates, 8 * tc.rays, lambda pix: depth_points_world(
             self.dirs_cam[pix], depth[pix], start), extent)
-        if tc.observed_only and observed is not None:
+        if rc.observed_only and observed is not None:
             candidates = self._in_observed_space(candidates, depth, start, observed)
         depth_fraction = with_depth * inside / max(int(self.border.sum()), 1)
         if len(candidates) < 10 or tc.iterations == 0:
@@ -89,7 +89,7 @@ class Tracker:
         t, q = pose_to_params(start)
         t.requires_grad_(True)
         q.requires_grad_(True)
-        optim = torch.optim.Adam([{"params": [t], "lr": tc.lr_translation}, {"params": [q], "lr": tc.lr_rotation}],
+        optim = torch.optim.Adam([{"params": [t], "lr": rc.lr_translation}, {"params": [q], "lr": rc.lr_rotation}],
                                  betas=(0.5, 0.999))
         # The best iteration's pose, loss and inlier fraction, kept on the device (no host round trip per iteration).
         best_pose = start.clone()
@@ -104,8 +104,8 @@ class Tracker:
             d_gt = depth[pix]
             out = render_rays(fixed, origins, dirs, d_gt, self.cfg.render, self.cfg.model.truncation, no_rays)
             error = (out.depth.detach() - d_gt).abs()
-            keep = outlier_mask(error, tc.outlier_factor)
-            loss = eslam_losses(out, d_gt, rgb[pix], self.cfg.model.truncation, keep).total(tc.weights)
+            keep = outlier_mask(error, rc.outlier_factor)
+            loss = eslam_losses(out, d_gt, rgb[pix], self.cfg.model.truncation, keep).total(rc.weights)
             better = loss.detach() < best_loss  # (a NaN loss is never better)
             best_loss = torch.where(better, loss.detach(), best_loss)
             best_pose = torch.where(better, c2w.detach(), best_pose)

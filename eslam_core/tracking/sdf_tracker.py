@@ -127,13 +127,13 @@ class SDFTracker:
     def reference(self, keyframe: Keyframe | None, device: torch.device = torch.device("cpu")) -> Reference | None:
         """The keyframe (host memory) prepared for photometric alignment on `device`, rebuilt only when the keyframe
         changes (its pose is read every time: mapping refines it)."""
-        if keyframe is None or keyframe.rgb.numel() == 0 or self.cfg.tracking.photometric_weight == 0:
+        if keyframe is None or keyframe.rgb.numel() == 0 or self.cfg.sdf_tracker.photometric_weight == 0:
             return None
         ref = self._reference
         if ref is None or ref.frame_index != keyframe.frame_index or ref.depth.device != device:
             ref = Reference.build(keyframe.frame_index, keyframe.rgb.to(device).float() / 255.0,
                                   keyframe.depth_image().to(device), keyframe.pose.to(device),
-                                  self.cfg.tracking.pyramid_levels)
+                                  self.cfg.sdf_tracker.pyramid_levels)
             self._reference = ref
         ref.pose = keyframe.pose.double().to(device)
         return ref
@@ -150,7 +150,7 @@ class SDFTracker:
         `free_prior`: the pose to keep along the directions the frame does not constrain (information.py), where
         that is not `init_pose` (None: keep the start's). Inputs and the result are host tensors; the work runs on
         the field's device."""
-        tc, T = self.cfg.tracking, self.cfg.model.truncation
+        tc, sc, T = self.cfg.tracking, self.cfg.sdf_tracker, self.cfg.model.truncation
         device = field.device
         self._on(device)
         image, depth = frame.rgb.to(device), frame.depth.to(device).reshape(-1)
@@ -163,7 +163,7 @@ class SDFTracker:
             return TrackingResult(init_pose.clone(), float("nan"), len(pix), depth_fraction, mapped_fraction=inside)
         p_cam = (self.dirs_cam[pix] * depth[pix, None]).double()
         median_depth = float(p_cam[:, 2].median())  # (the scale of a turn: information.py)
-        lam = tc.color_weight
+        lam = sc.color_weight
         grey_pixel = to_grey(image.reshape(-1, 3)[pix]) if lam > 0 else None
         ref = self.reference(keyframe, device)
         if ref is not None:
@@ -189,10 +189,10 @@ class SDFTracker:
                 if used.sum() < 30:
                     break
             band = used & (sdf.abs() < 0.99 * T)
-            r_geo = sdf.clamp(-T, T) / tc.huber
+            r_geo = sdf.clamp(-T, T) / sc.huber
             cost = huber_cost(r_geo)
             if lam > 0:
-                r_col = (grey - grey_pixel) / tc.color_huber
+                r_col = (grey - grey_pixel) / sc.color_huber
                 cost = cost + lam * torch.where(band, huber_cost(r_col), SATURATED_COST)
             cost = float(cost[used].mean())
             if ref is not None and scored:
@@ -200,9 +200,9 @@ class SDFTracker:
                 if photo_used is None:
                     photo_used = ok
                 if photo_used.any():
-                    r_ph = r_ph / tc.photometric_huber
+                    r_ph = r_ph / sc.photometric_huber
                     photo_cost = torch.where(ok, huber_cost(r_ph), SATURATED_COST)
-                    cost += tc.photometric_weight * float(photo_cost[photo_used].mean())
+                    cost += sc.photometric_weight * float(photo_cost[photo_used].mean())
             better = scored and cost < best_cost
             if better:
                 best_cost, inliers = cost, float(band.sum()) / max(float(used.sum()), 1.0)
@@ -211,18 +211,18 @@ class SDFTracker:
                 break
             # Points outside a term's mask take part with weight 0 (cheaper than gathering the others).
             w_geo = huber_weights(r_geo) * band
-            H, b = normal_equations(x, r_geo, sdf_grad / tc.huber, w_geo)
+            H, b = normal_equations(x, r_geo, sdf_grad / sc.huber, w_geo)
             chi2, residuals = w_geo @ r_geo**2, band.sum()
             if lam > 0:
                 w_col = lam * huber_weights(r_col) * band
-                Hc, bc = normal_equations(x, r_col, grey_grad / tc.color_huber, w_col)
+                Hc, bc = normal_equations(x, r_col, grey_grad / sc.color_huber, w_col)
                 H, b, chi2, residuals = H + Hc, b + bc, chi2 + w_col @ r_col**2, residuals + band.sum()
             if ref is not None and photo_used.any():
                 if level > 0:
                     r_ph, g_ph, ok = photometric_residuals(x, grey_current[level], ref, level, self.intr, T)
-                    r_ph = r_ph / tc.photometric_huber
-                w_ph = tc.photometric_weight * huber_weights(r_ph) * (ok & photo_used)
-                Hp, bp = normal_equations(x, r_ph, g_ph / tc.photometric_huber, w_ph)
+                    r_ph = r_ph / sc.photometric_huber
+                w_ph = sc.photometric_weight * huber_weights(r_ph) * (ok & photo_used)
+                Hp, bp = normal_equations(x, r_ph, g_ph / sc.photometric_huber, w_ph)
                 H, b = H + Hp, b + bp
                 chi2, residuals = chi2 + w_ph.double() @ r_ph**2, residuals + (w_ph > 0).sum()
             normal = (H.cpu().numpy(), float(chi2), int(residuals))
