@@ -45,7 +45,7 @@ def step_times(cfg, ds, grow: float, steps: int) -> tuple[int, list[float]]:
         f = prepare_frame(frame, ds.intrinsics, cfg.camera)
         keyframes.append(Keyframe.from_tensors(int(i), 0.0, f.rgb, f.depth, f.depth >= 0,
                                                torch.from_numpy(frame.pose).float()))
-    mapper = Mapper(cfg, pixel_directions_table(intr), intr.height, intr.width)
+    mapper = Mapper.of(cfg, pixel_directions_table(intr), intr.height, intr.width)
     window = list(range(len(keyframes)))
     times = []
     for _ in range(steps + 2):  # the first two warm up

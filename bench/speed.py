@@ -156,7 +156,7 @@ def iteration_benchmark(cfg, ds, repeats: int, native: bool, grow: float = 0.0) 
         f = prepare_frame(ds[int(i)], ds.intrinsics, cfg.camera)
         kf_pose = torch.from_numpy(f.gt_pose).float() if f.gt_pose is not None else pose
         kfs.append(Keyframe.from_tensors(int(i), 0.0, f.rgb, f.depth, f.depth >= 0, kf_pose))
-    mapper = Mapper(cfg, dirs_cam, intr.height, intr.width)
+    mapper = Mapper.of(cfg, dirs_cam, intr.height, intr.width)
     # Window poses are optimised too when the preset does (the oldest one anchors the gauge), as in mapping.py.
     pose_params = [[p.requires_grad_(True) for p in pose_to_params(kf.pose)] for kf in kfs[1:]] \
         if cfg.mapping.joint_poses else []

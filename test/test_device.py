@@ -147,7 +147,7 @@ def fitted(device, room_sequence):
         f = prepare_frame(ds[i], ds.intrinsics, cfg.camera)
         keyframes.append(Keyframe.from_tensors(i, f.timestamp, f.rgb, f.depth, f.depth >= 0,
                                                torch.from_numpy(f.gt_pose).float()))
-    mapper = Mapper(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width)
+    mapper = Mapper.of(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width)
     result = mapper.map(field, keyframes, [0, 1, 2], first=True)
     return cfg, field, dirs, keyframes, result
 
@@ -171,7 +171,7 @@ def test_mapping_step_on_the_device(fitted, device):
 def test_joint_pose_refinement_returns_host_poses(fitted, device):
     cfg, field, dirs, keyframes, _ = fitted
     cfg.mapping.iterations = 3
-    mapper = Mapper(cfg, dirs, keyframes[0].rgb.shape[0], keyframes[0].rgb.shape[1])
+    mapper = Mapper.of(cfg, dirs, keyframes[0].rgb.shape[0], keyframes[0].rgb.shape[1])
     state = {k: v.clone() for k, v in field.state_dict().items()}
     try:
         result = mapper.map(field, keyframes, [0, 1, 2], optimise_poses=True)
@@ -199,7 +199,7 @@ def test_tracking_step_on_the_device(fitted, device, room_sequence):
     cfg.render_tracker.lr_translation, cfg.render_tracker.lr_rotation = 0.003, 0.002
     frame, start = perturbed_frame(cfg, room_sequence)
     ds = room_sequence
-    result = Tracker(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width).track(field, frame, start)
+    result = Tracker.of(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width).track(field, frame, start)
     assert result.pose.device.type == "cpu" and np.isfinite(result.loss)
     t_err, r_err = pose_errors(result.pose, frame.gt_pose)
     assert t_err < 0.01 and r_err < 0.5, (t_err, r_err)
@@ -210,7 +210,7 @@ def test_sdf_tracking_on_the_device(fitted, device, room_sequence):
     cfg, field, dirs, keyframes, _ = fitted
     cfg.tracking.iterations, cfg.tracking.rays, cfg.sdf_tracker.color_weight = 15, 2000, 1.0
     frame, start = perturbed_frame(cfg, room_sequence)
-    tracker = SDFTracker(cfg, dirs, room_sequence.intrinsics)
+    tracker = SDFTracker.of(cfg, dirs, room_sequence.intrinsics)
     result = tracker.track(field, frame, start, keyframe=keyframes[1])
     assert tracker._reference.depth.device == device
     assert result.pose.device.type == "cpu"

@@ -181,7 +181,7 @@ def test_mapping_draws_only_usable_pixels(usable_fraction):
     g = torch.Generator().manual_seed(1)
     usable = torch.rand(60, 80, generator=g) < usable_fraction
     kf = Keyframe.from_tensors(0, 0.0, torch.rand(60, 80, 3), torch.full((60, 80), 2.0), usable, torch.eye(4))
-    mapper = Mapper(cfg, pixel_directions_table(intr), 60, 80)
+    mapper = Mapper.of(cfg, pixel_directions_table(intr), 60, 80)
     pix = mapper._pixels(kf, 500)
     v, u = pix // 80, pix % 80
     assert len(pix) == 500

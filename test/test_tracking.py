@@ -35,7 +35,7 @@ def fitted_map(room_sequence):
         f = prepare_frame(ds[i], ds.intrinsics, cfg.camera)
         kfs.append(Keyframe.from_tensors(i, f.timestamp, f.rgb, f.depth, f.depth >= 0,
                                          torch.from_numpy(f.gt_pose).float()))
-    mapper = Mapper(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width)
+    mapper = Mapper.of(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width)
     cfg.mapping.first_iterations = 250
     mapper.map(field, kfs, [0, 1, 2], first=True)
     return cfg, field, dirs
@@ -53,7 +53,7 @@ def test_tracking_recovers_perturbed_pose(fitted_map, room_sequence):
     start[:3, :3] = axis_angle([0.3, 1.0, -0.2], 3.0) @ gt[:3, :3]
     start[:3, 3] += np.array([0.02, -0.015, 0.015])  # 3 cm
     assert np.linalg.norm(start[:3, 3] - gt[:3, 3]) == pytest.approx(0.029, abs=0.002)
-    tracker = Tracker(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width)
+    tracker = Tracker.of(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width)
     result = tracker.track(field, frame, torch.from_numpy(start).float())
     est = result.pose.double().numpy()
     t_err = np.linalg.norm(est[:3, 3] - gt[:3, 3])
@@ -99,7 +99,7 @@ def _sdf_track_frame_9(cfg, field, dirs, ds, axis, degrees: float, offset, with_
     start = gt.copy()
     start[:3, :3] = axis_angle(axis, degrees) @ gt[:3, :3]
     start[:3, 3] += np.asarray(offset)
-    tracker = SDFTracker(cfg, dirs, ds.intrinsics)
+    tracker = SDFTracker.of(cfg, dirs, ds.intrinsics)
     return tracker, tracker.track(field, frame, torch.from_numpy(start).float(), keyframe=keyframe), gt
 
 
@@ -197,7 +197,7 @@ def test_trackers_use_only_depth_inside_the_maps_extent(fitted_map, room_sequenc
     extent = np.array([[-5.0, -5, -5], [cut, 5, 5]])
     start = frame.gt_pose.copy()
     start[:3, 3] += np.array([0.01, -0.01, 0.01])
-    tracker = SDFTracker(cfg, dirs, ds.intrinsics) if method == "sdf" else Tracker(cfg, dirs, ds.intrinsics.height,
+    tracker = SDFTracker.of(cfg, dirs, ds.intrinsics) if method == "sdf" else Tracker.of(cfg, dirs, ds.intrinsics.height,
                                                                                     ds.intrinsics.width)
     whole = tracker.track(field, frame, torch.from_numpy(start).float())
     half = tracker.track(field, frame, torch.from_numpy(start).float(), extent)
@@ -234,7 +234,7 @@ def test_observed_only_draws_rays_from_observed_space(fitted_map, room_sequence)
     points = depth_points_world(dirs[candidates], depth[candidates], pose)
     column = candidates % ds.intrinsics.width
     left = column < 0.75 * ds.intrinsics.width
-    tracker = Tracker(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width)
+    tracker = Tracker.of(cfg, dirs, ds.intrinsics.height, ds.intrinsics.width)
 
     observed = ObservedSpace(field.bound, cfg.model.truncation)
     assert torch.equal(tracker._in_observed_space(candidates, depth, pose, observed), candidates)  # nothing seen

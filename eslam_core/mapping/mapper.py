@@ -15,7 +15,7 @@ from typing import Callable, Optional
 
 import torch
 
-from eslam_core.config import Config
+from eslam_core.config import Config, MappingConfig, RenderConfig
 from eslam_core.cpu import denormals_flushed
 from eslam_core.device import upload
 from eslam_core.representation.field import SceneField
@@ -41,12 +41,18 @@ class MappingResult:
 
 
 class Mapper:
-    def __init__(self, cfg: Config, dirs_cam: torch.Tensor, height: int, width: int):
-        self.cfg = cfg
+    def __init__(self, mapping: MappingConfig, render: RenderConfig, truncation: float, dirs_cam: torch.Tensor,
+                 height: int, width: int):
+        self.settings, self.render, self.truncation = mapping, render, truncation
         self.dirs_cam = dirs_cam  # on the field's device once mapping starts (see _on)
         self.width = width
-        self.border = border_mask(height, width, cfg.mapping.border).reshape(-1)  # host: pixels are drawn there
+        self.border = border_mask(height, width, mapping.border).reshape(-1)  # host: pixels are drawn there
         self.plane_adam = RowSparseAdam(betas=(0.9, 0.999))
+
+    @staticmethod
+    def of(cfg: Config, dirs_cam: torch.Tensor, height: int, width: int) -> "Mapper":
+        """The mapper of `cfg`'s sections."""
+        return Mapper(cfg.mapping, cfg.render, cfg.model.truncation, dirs_cam, height, width)
 
     def _on(self, device: torch.device) -> None:
         if self.dirs_cam.device != device:
@@ -74,7 +80,7 @@ class Mapper:
         """`after_iteration(iterations done)`, called after every iteration, ends the step before its iteration count
         by returning True (the pipelined mapper does when it falls behind the tracker); it is also where the caller
         publishes the map mid-step or abandons the step by raising. `iterations`: the count, if not the config's."""
-        mc = self.cfg.mapping
+        mc = self.settings
         device = field.device
         self._on(device)
         if iterations is None:
@@ -103,7 +109,7 @@ class Mapper:
     def _iterate(self, field: SceneField, keyframes, window: list[int], poses: dict, pose_params: dict,
                  iterations: int, optim: torch.optim.Optimizer, after_iteration) -> Optional[torch.Tensor]:
         """The step's iterations; returns the last loss (None if none ran)."""
-        mc, device = self.cfg.mapping, field.device
+        mc, device = self.settings, field.device
         per_frame = max(1, mc.rays // len(window))
         last_loss = None
         for it in range(iterations):
@@ -130,9 +136,9 @@ class Mapper:
                 dirs.append(dirs_cam @ c2w[:3, :3].T)
                 origins.append(c2w[:3, 3].expand(n, 3))
             d_gt_all = upload(d_gt_host, device)
-            out = render_rays(field, torch.cat(origins), torch.cat(dirs), d_gt_all, self.cfg.render,
-                              self.cfg.model.truncation, missing)
-            loss = eslam_losses(out, d_gt_all, upload(torch.cat(rgb_gt), device), self.cfg.model.truncation
+            out = render_rays(field, torch.cat(origins), torch.cat(dirs), d_gt_all, self.render,
+                              self.truncation, missing)
+            loss = eslam_losses(out, d_gt_all, upload(torch.cat(rgb_gt), device), self.truncation
                                 ).total(mc.weights)
             optim.zero_grad(set_to_none=True)
             loss.backward()

@@ -74,7 +74,7 @@ class SceneMap:
         self.device = resolve_device(cfg.run.device)  # of the field and observed space; keyframes stay on the host
         mc = cfg.mapping
         self.keyframes = KeyframeStore(int(mc.keyframe_budget_mb * 2**20))
-        self.mapper = Mapper(cfg, dirs_cam, intr.height, intr.width)
+        self.mapper = Mapper.of(cfg, dirs_cam, intr.height, intr.width)
         self.rng = np.random.default_rng(cfg.run.seed)
         self.extent: Optional[np.ndarray] = None
         self.field: Optional[SceneField] = None

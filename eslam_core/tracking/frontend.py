@@ -65,8 +65,8 @@ MAPPED_AT_LEAST = 0.5
 def make_tracker(cfg: Config, dirs_cam: torch.Tensor, intr: Intrinsics):
     """The tracker the config asks for: the paper's rendering tracker or the fast SDF alignment."""
     if cfg.tracking.method == "sdf":
-        return SDFTracker(cfg, dirs_cam, intr)
-    return Tracker(cfg, dirs_cam, intr.height, intr.width)
+        return SDFTracker.of(cfg, dirs_cam, intr)
+    return Tracker.of(cfg, dirs_cam, intr.height, intr.width)
 
 
 def left_the_map(result: TrackingResult) -> bool:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from eslam_core.config import Config
+from eslam_core.config import Config, RenderConfig, RenderTrackerConfig, TrackingConfig
 from eslam_core.cpu import denormals_flushed, flat_nonzero
 from eslam_core.representation.field import FoldedMap, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
@@ -50,11 +50,17 @@ def outlier_mask(depth_error: torch.Tensor, factor: float) -> torch.Tensor:
 
 
 class Tracker:
-    def __init__(self, cfg: Config, dirs_cam: torch.Tensor, height: int, width: int):
-        self.cfg = cfg
+    def __init__(self, tracking: TrackingConfig, settings: RenderTrackerConfig, render: RenderConfig, truncation: float,
+                 dirs_cam: torch.Tensor, height: int, width: int):
+        self.tracking, self.settings, self.render, self.truncation = tracking, settings, render, truncation
         self.dirs_cam = dirs_cam  # (H*W, 3)
-        self.border = border_mask(height, width, cfg.tracking.border).reshape(-1)
+        self.border = border_mask(height, width, tracking.border).reshape(-1)
         self._folded = FoldedMap()
+
+    @staticmethod
+    def of(cfg: Config, dirs_cam: torch.Tensor, height: int, width: int) -> "Tracker":
+        """The tracker of `cfg`'s sections."""
+        return Tracker(cfg.tracking, cfg.render_tracker, cfg.render, cfg.model.truncation, dirs_cam, height, width)
 
     def _on(self, device: torch.device) -> None:
         """Keep the per-camera tables on the map's device (moved once)."""
@@ -71,7 +77,7 @@ class Tracker:
         (otherwise, as in the paper and the official code, any pixel with depth may be drawn); `keyframe` and
         `free_prior` are not used (Adam has no normal equations to tell the directions the frame constrains); `map_version` changes whenever the field's values do (None: unknown). Inputs and the result are host
         tensors; the work runs on the field's device."""
-        tc, rc = self.cfg.tracking, self.cfg.render_tracker
+        tc, rc = self.tracking, self.settings
         device = field.device
         self._on(device)
         rgb, depth = frame.rgb.to(device).reshape(-1, 3), frame.depth.to(device).reshape(-1)
@@ -102,14 +108,14 @@ class Tracker:
             c2w = params_to_pose(t, q)
             origins, dirs = rays_to_world(self.dirs_cam[pix], c2w)
             d_gt = depth[pix]
-            out = render_rays(fixed, origins, dirs, d_gt, self.cfg.render, self.cfg.model.truncation, no_rays)
+            out = render_rays(fixed, origins, dirs, d_gt, self.render, self.truncation, no_rays)
             error = (out.depth.detach() - d_gt).abs()
             keep = outlier_mask(error, rc.outlier_factor)
-            loss = eslam_losses(out, d_gt, rgb[pix], self.cfg.model.truncation, keep).total(rc.weights)
+            loss = eslam_losses(out, d_gt, rgb[pix], self.truncation, keep).total(rc.weights)
             better = loss.detach() < best_loss  # (a NaN loss is never better)
             best_loss = torch.where(better, loss.detach(), best_loss)
             best_pose = torch.where(better, c2w.detach(), best_pose)
-            best_inliers = torch.where(better, (error < self.cfg.model.truncation).float().mean(), best_inliers)
+            best_inliers = torch.where(better, (error < self.truncation).float().mean(), best_inliers)
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from eslam_core.camera import Intrinsics
-from eslam_core.config import Config
+from eslam_core.config import Config, SDFTrackerConfig, TrackingConfig
 from eslam_core.cpu import denormals_flushed, flat_nonzero, one_thread
 from eslam_core.representation.field import FoldedMap, FrozenField, SceneField
 from eslam_core.frames import PreparedFrame, border_mask
@@ -110,14 +110,20 @@ def pyramid_level(iteration: int, iterations: int, levels: int) -> int:
 
 
 class SDFTracker:
-    def __init__(self, cfg: Config, dirs_cam: torch.Tensor, intr: Intrinsics):
-        self.cfg = cfg
+    def __init__(self, tracking: TrackingConfig, settings: SDFTrackerConfig, truncation: float, dirs_cam: torch.Tensor,
+                 intr: Intrinsics):
+        self.tracking, self.settings, self.truncation = tracking, settings, truncation
         self.dirs_cam = dirs_cam
         self.intr = intr
-        self.border = border_mask(intr.height, intr.width, cfg.tracking.border).reshape(-1)
+        self.border = border_mask(intr.height, intr.width, tracking.border).reshape(-1)
         self.border_pixels = max(int(self.border.sum()), 1)
         self._reference: Reference | None = None
         self._folded = FoldedMap()
+
+    @staticmethod
+    def of(cfg: Config, dirs_cam: torch.Tensor, intr: Intrinsics) -> "SDFTracker":
+        """The tracker of `cfg`'s sections."""
+        return SDFTracker(cfg.tracking, cfg.sdf_tracker, cfg.model.truncation, dirs_cam, intr)
 
     def _on(self, device: torch.device) -> None:
         """Keep the per-camera tables on the map's device (moved once)."""
@@ -127,13 +133,13 @@ class SDFTracker:
     def reference(self, keyframe: Keyframe | None, device: torch.device = torch.device("cpu")) -> Reference | None:
         """The keyframe (host memory) prepared for photometric alignment on `device`, rebuilt only when the keyframe
         changes (its pose is read every time: mapping refines it)."""
-        if keyframe is None or keyframe.rgb.numel() == 0 or self.cfg.sdf_tracker.photometric_weight == 0:
+        if keyframe is None or keyframe.rgb.numel() == 0 or self.settings.photometric_weight == 0:
             return None
         ref = self._reference
         if ref is None or ref.frame_index != keyframe.frame_index or ref.depth.device != device:
             ref = Reference.build(keyframe.frame_index, keyframe.rgb.to(device).float() / 255.0,
                                   keyframe.depth_image().to(device), keyframe.pose.to(device),
-                                  self.cfg.sdf_tracker.pyramid_levels)
+                                  self.settings.pyramid_levels)
             self._reference = ref
         ref.pose = keyframe.pose.double().to(device)
         return ref
@@ -150,7 +156,7 @@ class SDFTracker:
         `free_prior`: the pose to keep along the directions the frame does not constrain (information.py), where
         that is not `init_pose` (None: keep the start's). Inputs and the result are host tensors; the work runs on
         the field's device."""
-        tc, sc, T = self.cfg.tracking, self.cfg.sdf_tracker, self.cfg.model.truncation
+        tc, sc, T = self.tracking, self.settings, self.truncation
         device = field.device
         self._on(device)
         image, depth = frame.rgb.to(device), frame.depth.to(device).reshape(-1)
