@@ -8,7 +8,7 @@ Conventions (used everywhere in eslam_core):
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 
@@ -60,6 +60,9 @@ class Frame:
     # 4x4 float64 camera-to-odom from an external odometry (wheel, VIO) at this frame's stamp, OpenCV axes; its
     # motion between frames is the tracker's prior (and, with tracking.mode "external", the pose). None = none.
     odom_pose: Optional[np.ndarray] = None
+    # The caller's own record of the frame (a ROS node: the image's stamp and frame id), handed back with the frame's
+    # pose (PoseUpdate.tag); SLAM never reads it.
+    tag: Any = None
 
 
 def backproject(depth: np.ndarray, intr: Intrinsics, pose: Optional[np.ndarray] = None, stride: int = 1) -> np.ndarray:

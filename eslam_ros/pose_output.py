@@ -1,14 +1,12 @@
 """The node's pose outputs: ~/pose, ~/odom, TF (map -> camera, or map -> odom in REP 105 mode), ~/map_to_odom and
 ~/path, from the runtime's pose updates and trajectory.
 
-Every frame handed to the runtime leaves a `FrameTag` here (the rgb image's stamp and frame, its arrival time, the
-robot odometry at the frame); the pose update of that frame takes it back, so that every output is stamped with the
-stamp of the image it was computed from. Frames that never get a pose (the live policy skips to the newest) are
-forgotten when a later frame's pose comes.
+Every frame goes to the runtime with a `FrameTag` (the rgb image's stamp and frame, its arrival time, the robot
+odometry at the frame), and the frame's pose update brings it back (PoseUpdate.tag), so that every output is stamped
+with the stamp of the image it was computed from.
 """
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Optional
@@ -81,8 +79,6 @@ class PoseOutput:
         self.map_to_odom_pub = (node.create_publisher(TransformStamped, "~/map_to_odom", output_qos())
                                 if tf_setup.rep105 else None)
         self.counts = PoseCounts()
-        self._lock = threading.Lock()  # the tags: written by the input thread, read by the pose thread
-        self._tags: dict[int, FrameTag] = {}
         self._previous: Optional[tuple[np.ndarray, float]] = None
         self.lost = False  # the newest pose update said the camera is lost
         self.degraded: Optional[str] = None  # the newest pose update was degraded: its free direction
@@ -92,16 +88,9 @@ class PoseOutput:
     def publishers(self) -> list:
         return [p for p in (self.pose_pub, self.odom_pub, self.path_pub, self.map_to_odom_pub) if p is not None]
 
-    def expect(self, index: int, tag: FrameTag) -> None:
-        """Frame `index` went to the runtime: its pose will come."""
-        with self._lock:
-            self._tags[index] = tag
-
     def reset(self) -> None:
-        """A new map: poses of frames submitted before it are not published."""
-        with self._lock:
-            self._tags.clear()
-            self._previous = None
+        """A new map: no twist from the old map's last pose."""
+        self._previous = None
 
     def publish(self, updates) -> None:
         start = time.monotonic()
@@ -110,13 +99,9 @@ class PoseOutput:
         self.counts.seconds += time.monotonic() - start
 
     def _publish(self, update: Any) -> None:
-        with self._lock:
-            tag = self._tags.pop(update.index, None)
-            # Frames before this one that got no pose were dropped by the live policy: forget them.
-            for index in [i for i in self._tags if i < update.index]:
-                del self._tags[index]
-            previous, self._previous = self._previous, (update.pose, update.timestamp)
-        if tag is None:  # a frame from before a reset
+        tag: Optional[FrameTag] = update.tag
+        previous, self._previous = self._previous, (update.pose, update.timestamp)
+        if tag is None:  # not a frame of the node's
             return
         stamp, map_frame = tag.stamp, self.settings.map_frame
         output = self.in_output_frame(update.pose, tag.frame_id)

@@ -2,12 +2,13 @@
 
 The runtime needs the camera, so it starts with the first accepted frame, on a thread of its own (spawning workers
 takes seconds, and the input callbacks must keep taking messages meanwhile). Frames accepted while it starts wait
-in the start-up queue (offline: all of them, up to start_queue_bytes; live: the newest 30). Every frame handed to
-the runtime leaves its tag with the pose output, whose updates it polls. A reset starts a new map; a loaded map
+in the start-up queue (offline: all of them, up to start_queue_bytes; live: the newest 30). Every frame goes to the
+runtime with its tag, which its pose update brings back to the pose output. A reset starts a new map; a loaded map
 replaces the runtime (the next frame starts the new one); a crash is kept as `failed`, and the node stops on it.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
@@ -80,10 +81,9 @@ class RuntimeHost:
             self._submit_now(self.held.popleft())
 
     def _submit_now(self, accepted: AcceptedFrame) -> None:
-        self.poses.expect(accepted.frame.index, FrameTag(accepted.stamp, accepted.frame_id, accepted.received,
-                                                          accepted.odometry))
+        tag = FrameTag(accepted.stamp, accepted.frame_id, accepted.received, accepted.odometry)
         try:
-            self.runtime.submit(accepted.frame)
+            self.runtime.submit(dataclasses.replace(accepted.frame, tag=tag))
         except RuntimeCrashed as error:
             self.fail(f"the SLAM runtime crashed: {error}")
 

@@ -20,7 +20,7 @@ import time
 from collections import deque
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Optional, Protocol, runtime_checkable
+from typing import Any, Optional, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -55,6 +55,7 @@ class PoseUpdate:
     lost: bool = False  # the camera is lost: the pose is a guess (not mapped; a publisher should say so)
     degraded: bool = False  # the view leaves the pose free in some direction (not mapped; tracking/quality.py)
     covariance: Optional[np.ndarray] = None  # (6, 6) x y z roll pitch yaw, world frame; None: not measured
+    tag: Any = None  # the submitted Frame's tag
 
 
 @dataclass

@@ -93,6 +93,8 @@ class InProcessRuntime(SavingMixin):
     def submit(self, frame: Frame) -> None:
         self._check_running()
         check_frame(frame, self.intrinsics)
+        with self._lock:
+            self._parent.submitted(frame.index, frame.tag)
         item = (frame, time.monotonic(), self._epoch)
         with self._cond:
             self._counts["received"] += 1

@@ -392,6 +392,8 @@ class MultiProcessRuntime(SavingMixin):
     def submit(self, frame: Frame) -> None:
         self._check_running()
         check_frame(frame, self.intrinsics)
+        with self._lock:
+            self._parent.submitted(frame.index, frame.tag)
         arrival = time.monotonic()
         rgb8, depth = working_images(frame, self.intrinsics, self.cfg.camera)
         live = self.policy == "live"
