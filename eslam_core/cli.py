@@ -143,7 +143,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--frames", type=parse_frames, default=(0, None), help="A:B, frames to run (default all)")
     r.add_argument("--stride", type=int, default=1, help="use every N-th frame")
-    r.add_argument("--resume", type=Path, help="continue from a checkpoint.pt")
+    r.add_argument("--resume", type=Path, help="continue from a checkpoint.pt: only the frames it has not seen run "
+                   "(with --workers 1 or 2)")
     r.add_argument("--localize", type=Path, metavar="CHECKPOINT",
                    help="track and relocalize against the map of a checkpoint.pt, which is left as it is (no "
                         "mapping; run.mode localization)")

@@ -30,7 +30,7 @@ from eslam_core.atomic import OutputsNotWritten, OutputWriteError, make_output_f
 from eslam_core.outputs.mesh import EmptyMeshError, save_ply
 from eslam_core.runtime import make_runtime
 from eslam_core.runtime.api import peak_rss_mb
-from eslam_core.slam import SLAM
+from eslam_core.slam import SLAM, loaded_trajectory
 from eslam_core.trajectory import TrackedTrajectory
 
 log = logging.getLogger("eslam")
@@ -199,13 +199,17 @@ def run_with_runtime(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_l
                      resume: Optional[Path], progress: bool, write_mesh: bool, workers: int,
                      policy: str, options: dict) -> RunSummary:
     """`run_sequence` through a runtime: frames are submitted as fast as they load (offline policy) or at the data
-    set's frame rate (live policy), the progress bar follows the polled poses."""
+    set's frame rate (live policy), the progress bar follows the polled poses. `resume`: the runtime starts in the
+    checkpoint's map and trajectory, and only the frames it has not seen are run (as in the lock-step schedule)."""
+    todo = list(range(len(dataset)))
     if resume is not None:
-        raise ValueError("--resume continues a lock-step run only: use --workers 1 with --resume "
-                         "(or start a new run without --resume)")
-    rt = make_runtime(cfg, dataset.intrinsics, workers=workers, policy=policy, **options)
+        done = set(loaded_trajectory(resume, cfg, dataset.intrinsics).timestamps().tolist())
+        todo = [i for i, t in enumerate(dataset.timestamps()) if t not in done]
+        log.info("resuming from %s: %d frames done, %d to go", resume, len(done), len(todo))
+    rt = make_runtime(cfg, dataset.intrinsics, workers=workers, policy=policy,
+                      checkpoint=None if resume is None else str(resume), **options)
     read_ahead = policy == "offline" and cfg.runtime.read_ahead > 0  # a live policy reads at the camera's rate
-    bar = tqdm(total=len(dataset), desc="eslam", unit="frame", disable=not progress, dynamic_ncols=True)
+    bar = tqdm(total=len(todo), desc="eslam", unit="frame", disable=not progress, dynamic_ncols=True)
 
     def show(updates: list) -> None:
         if updates:
@@ -220,7 +224,7 @@ def run_with_runtime(cfg: Config, dataset: RGBDDataset, out_dir: Path, *, data_l
         start = time.perf_counter()
         try:
             wall0 = data0 = None
-            for i in range(len(dataset)):
+            for i in todo:
                 if stop.requested:
                     break
                 frame = source[i]

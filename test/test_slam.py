@@ -90,6 +90,20 @@ def test_resume_continues_where_the_checkpoint_stopped(room_sequence, run, tmp_p
     assert np.allclose(slam.trajectory.poses(), load_checkpoint(out / "checkpoint.pt").trajectory.poses())
 
 
+def test_resume_through_the_pipelined_runtime_runs_only_the_frames_not_done(room_sequence, tmp_path):
+    """--resume with --workers 2: the runtime starts in the checkpoint's map and trajectory and gets only the frames
+    the checkpoint has not seen; the poses it had stay as they were (the demo maps without joint pose refinement
+    here, so nothing moves them)."""
+    cfg = load_config("demo", {**FAST, "mapping": {"first_iterations": 60, "joint_poses": False}})
+    first = run_sequence(cfg, room_sequence.subset(0, 12), tmp_path / "a", progress=False, write_mesh=False)
+    resumed = run_sequence(cfg, room_sequence.subset(0, 16), tmp_path / "b", resume=tmp_path / "a" / "checkpoint.pt",
+                           progress=False, write_mesh=False, workers=2)
+    assert first.n_frames == 12 and resumed.n_frames == 4
+    before, after = (load_checkpoint(tmp_path / d / "checkpoint.pt").trajectory for d in ("a", "b"))
+    assert len(after) == 16 and np.allclose(after.timestamps(), room_sequence.subset(0, 16).timestamps())
+    assert np.allclose(after.poses()[:12], before.poses(), atol=1e-6)
+
+
 def test_checkpoint_restores_observed_space(run):
     """The fast tracker's observed space is rebuilt from the keyframes when a checkpoint is loaded."""
     summary, out = run
