@@ -32,7 +32,7 @@ sys.path.insert(0, str(REPO))
 from eslam_core.cli import parse_frames  # noqa: E402
 from eslam_core.datasets import open_dataset  # noqa: E402
 from eslam_core.datasets.tum import write_tum  # noqa: E402
-from eslam_core.evaluation.trajectory import ate  # noqa: E402
+from eslam_core.evaluation.trajectory_error import ate  # noqa: E402
 from eslam_core.trajectory import Trajectory  # noqa: E402
 from eslam_ros.bag import BagTopics, bag_timestamps, play_bag, write_bag  # noqa: E402
 from eslam_ros.qos import use_shipped_fastdds_profile  # noqa: E402

@@ -36,7 +36,7 @@ from ros_replay import TOPICS, process_tree_cpu, start_node, warmed_up  # noqa: 
 from soak import lap_order, memory_mb  # noqa: E402
 
 from eslam_core.datasets import open_dataset  # noqa: E402
-from eslam_core.evaluation.trajectory import ate  # noqa: E402
+from eslam_core.evaluation.trajectory_error import ate  # noqa: E402
 from eslam_core.trajectory import Trajectory  # noqa: E402
 from eslam_ros.bag import CAMERA_FRAME  # noqa: E402
 

@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from eslam_core.cli import open_configured_dataset, parse_frames, parse_overrides  # noqa: E402
 from eslam_core.config import RuntimeConfig, load_config  # noqa: E402
-from eslam_core.evaluation.trajectory import ate  # noqa: E402
+from eslam_core.evaluation.trajectory_error import ate  # noqa: E402
 from eslam_core.trajectory import Trajectory  # noqa: E402
 from eslam_core.runtime import make_runtime  # noqa: E402
 from eslam_core.runtime.shared import stage_profile  # noqa: E402

@@ -32,7 +32,7 @@ from eslam_core.camera import Frame  # noqa: E402
 from eslam_core.cli import parse_overrides  # noqa: E402
 from eslam_core.config import load_config  # noqa: E402
 from eslam_core.datasets import open_dataset  # noqa: E402
-from eslam_core.evaluation.trajectory import ate  # noqa: E402
+from eslam_core.evaluation.trajectory_error import ate  # noqa: E402
 from eslam_core.trajectory import Trajectory  # noqa: E402
 from eslam_core.runtime import make_runtime  # noqa: E402
 from eslam_core.runtime.shared import stage_profile  # noqa: E402

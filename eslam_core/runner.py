@@ -23,7 +23,7 @@ from tqdm import tqdm
 from eslam_core.config import Config, save_config
 from eslam_core.datasets import RGBDDataset
 from eslam_core.datasets.read_ahead import ReadAhead
-from eslam_core.evaluation.trajectory import ate
+from eslam_core.evaluation.trajectory_error import ate
 from eslam_core.outputs.export import estimated_trajectory, ground_truth_trajectory, load_checkpoint, map_mesh, save_checkpoint, \
     tracking_summary, write_trajectories
 from eslam_core.atomic import OutputsNotWritten, OutputWriteError, make_output_folder, write_atomic

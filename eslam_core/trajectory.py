@@ -6,7 +6,7 @@ keyframe's correction, blended (by time) into the next keyframe's correction as 
 The same class serves the lock-step system, the tracking process and the runtime's copy in the caller's process.
 
 `Trajectory` is the plain sequence of time stamps and poses that is written to a file (datasets/tum.py) and compared
-with the ground truth (evaluation/trajectory.py).
+with the ground truth (evaluation/trajectory_error.py).
 """
 from __future__ import annotations
 

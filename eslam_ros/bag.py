@@ -43,7 +43,7 @@ from eslam_core.cli import parse_frames, parse_overrides
 from eslam_core.config import Config, list_presets, load_config, save_config
 from eslam_core.datasets import RGBDDataset, open_dataset
 from eslam_core.datasets.tum import write_tum
-from eslam_core.evaluation.trajectory import ate
+from eslam_core.evaluation.trajectory_error import ate
 from eslam_core.trajectory import Trajectory
 from eslam_ros.conversions import (
     camera_info_from_intrinsics,

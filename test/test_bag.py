@@ -22,7 +22,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from eslam_core.config import load_config
 from eslam_core.datasets.tum import read_tum
-from eslam_core.evaluation.trajectory import still_camera_ate
+from eslam_core.evaluation.trajectory_error import still_camera_ate
 from eslam_ros.bag import (
     BagError,
     BagTopics,

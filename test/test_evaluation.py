@@ -33,7 +33,7 @@ from eslam_core.evaluation.report import (
     write_report_json,
 )
 from eslam_core.datasets.tum import read_tum, write_tum
-from eslam_core.evaluation.trajectory import associate, ate, rpe, still_camera_ate, umeyama_alignment
+from eslam_core.evaluation.trajectory_error import associate, ate, rpe, still_camera_ate, umeyama_alignment
 from eslam_core.trajectory import Trajectory, TrajectoryError
 from eslam_core.rendering.raycast import render_depth
 

@@ -13,7 +13,7 @@ from eslam_core.config import ModelConfig, load_config
 from eslam_core.datasets import open_dataset
 from eslam_core.datasets.synthetic import generate_scene
 from eslam_core.datasets.tum import read_tum
-from eslam_core.evaluation.trajectory import still_camera_ate
+from eslam_core.evaluation.trajectory_error import still_camera_ate
 from eslam_core.mapping.extent import grown_extent
 from eslam_core.mapping.keyframes import REDUCED_STRIDE, Keyframe, KeyframeStore
 from eslam_core.mapping.observed import ObservedSpace

@@ -15,7 +15,7 @@ import trimesh
 
 from eslam_core.camera import Intrinsics
 from eslam_core.outputs.mesh import MeshSettings, extract_mesh
-from eslam_core.outputs.mesh_blocks import (BlockLayout, IncrementalMesher, MapView, surface_changed, thinning_stride,
+from eslam_core.outputs.mesh_blocks import (BlockLayout, IncrementalMesher, MeshSource, surface_changed, thinning_stride,
                                             triangle_soup, BlockMesh)
 from eslam_core.runtime.mesher import BackgroundMesher, MeshSnapshot
 
@@ -81,16 +81,16 @@ def traced_depth(field: AnalyticField, pose: np.ndarray) -> np.ndarray:
 CAMERAS = [look_at(np.array([0.2, -1.9, 1.3]), [0.2, 0.0, 0.3]), look_at(np.array([-0.3, 1.8, 1.2]), [0.1, 0.0, 0.3])]
 
 
-def scene_view(balls=(BALL, SMALL), bound=BOUND, depth_balls=None) -> MapView:
+def scene_view(balls=(BALL, SMALL), bound=BOUND, depth_balls=None) -> MeshSource:
     """The map of `balls`; the keyframes' depth images of `depth_balls` (default: the same balls)."""
     field = AnalyticField(list(balls))
     seen = AnalyticField(list(depth_balls if depth_balls is not None else balls))
-    return MapView(field.sdf, field.color, np.asarray(bound, float), T, INTR, [0, 1], np.stack(CAMERAS),
+    return MeshSource(field.sdf, field.color, np.asarray(bound, float), T, INTR, [0, 1], np.stack(CAMERAS),
                    [traced_depth(seen, pose) for pose in CAMERAS])
 
 
 @pytest.fixture(scope="module")
-def view() -> MapView:
+def view() -> MeshSource:
     return scene_view()
 
 

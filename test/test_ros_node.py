@@ -30,7 +30,7 @@ from visualization_msgs.msg import MarkerArray
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config, ConfigError, load_config
 from eslam_core.datasets.tum import read_tum
-from eslam_core.evaluation.trajectory import ate, still_camera_ate
+from eslam_core.evaluation.trajectory_error import ate, still_camera_ate
 from eslam_core.trajectory import Trajectory
 from eslam_core.trajectory import thinned
 from eslam_ros.bag import write_bag

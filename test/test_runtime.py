@@ -23,7 +23,7 @@ import torch
 
 from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import load_config
-from eslam_core.evaluation.trajectory import ate, still_camera_ate
+from eslam_core.evaluation.trajectory_error import ate, still_camera_ate
 from eslam_core.trajectory import Trajectory
 from eslam_core.outputs.export import load_checkpoint, map_mesh
 from eslam_core.runtime.mesher import PackedSnapshot

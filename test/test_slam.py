@@ -10,7 +10,7 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 from eslam_core.cli import main
 from eslam_core.config import load_config
 from eslam_core.demo import mesh_scores
-from eslam_core.evaluation.trajectory import still_camera_ate
+from eslam_core.evaluation.trajectory_error import still_camera_ate
 from eslam_core.outputs.export import load_checkpoint, map_mesh
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.runner import run_sequence

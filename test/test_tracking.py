@@ -249,7 +249,7 @@ def test_observed_only_draws_rays_from_observed_space(fitted_map, room_sequence)
 def test_frame_odometry_measures_the_motion_between_two_frames_and_says_when_it_cannot(room_sequence):
     """Frames 0 and 9 of the room are 7.8 cm and 4.5 degrees apart: the odometry gets their relative pose within
     3 mm / 0.3 degrees; against a frame with no depth it reports a failure, not a motion."""
-    from eslam_core.tracking.odometry import FrameOdometry
+    from eslam_core.tracking.odometry import RGBDOdometry
 
     ds = room_sequence
     cfg = load_config("live")
@@ -257,19 +257,19 @@ def test_frame_odometry_measures_the_motion_between_two_frames_and_says_when_it_
     truth = np.linalg.inv(f0.gt_pose) @ f9.gt_pose
     assert np.linalg.norm(truth[:3, 3]) > 0.07
 
-    def error_of(odometry: FrameOdometry) -> tuple[float, float]:
+    def error_of(odometry: RGBDOdometry) -> tuple[float, float]:
         odometry.set_reference(0, odometry.frame(f0.rgb, f0.depth))
         error = np.linalg.inv(truth) @ odometry.motion(odometry.frame(f9.rgb, f9.depth))
         return float(np.linalg.norm(error[:3, 3])), rotation_angle_deg(error[:3, :3])
 
-    odometry = FrameOdometry(ds.intrinsics, 160)
+    odometry = RGBDOdometry(ds.intrinsics, 160)
     assert odometry.motion(odometry.frame(f9.rgb, f9.depth)) is None  # no reference yet
-    for odometry in (odometry, FrameOdometry(ds.intrinsics, 160, iterations=cfg.odometry.iterations)):
+    for odometry in (odometry, RGBDOdometry(ds.intrinsics, 160, iterations=cfg.odometry.iterations)):
         metres, degrees = error_of(odometry)
         assert metres < 0.003 and degrees < 0.3
     assert odometry.motion(odometry.frame(f9.rgb, torch.zeros_like(f9.depth))) is None
     # The iteration counts reach OpenCV: one iteration per level leaves the motion unfinished.
-    assert error_of(FrameOdometry(ds.intrinsics, 160, iterations=(1, 1, 1, 1)))[0] > 3 * metres
+    assert error_of(RGBDOdometry(ds.intrinsics, 160, iterations=(1, 1, 1, 1)))[0] > 3 * metres
 
 
 @pytest.mark.parametrize("preset", ["live", "fast"])

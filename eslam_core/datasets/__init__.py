@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Optional
 
 from eslam_core.camera import Intrinsics
-from eslam_core.datasets.base import DatasetError, FrameRecord, RGBDDataset
+from eslam_core.datasets.base import DatasetError, FrameFiles, RGBDDataset
 from eslam_core.datasets.replica import ReplicaDataset
 from eslam_core.datasets.scannet import ScanNetDataset
 from eslam_core.datasets.sevenscenes import SevenScenesDataset, has_frames as has_7scenes_frames
@@ -21,7 +21,7 @@ from eslam_core.datasets.tum import ICLNUIMDataset, TUMDataset
 
 __all__ = [
     "DatasetError",
-    "FrameRecord",
+    "FrameFiles",
     "ICLNUIMDataset",
     "RGBDDataset",
     "ReplicaDataset",

@@ -1,7 +1,7 @@
 """The RGB-D sequence abstraction shared by every data set reader, and the file primitives they use.
 
 A reader parses a data set's index files once (file lists, timestamps, ground-truth poses) into a list of
-`FrameRecord`s; images are only read when a frame is asked for. Everything a reader returns follows the
+`FrameFiles`s; images are only read when a frame is asked for. Everything a reader returns follows the
 conventions of `eslam_core.camera`: colour uint8 RGB, depth float32 metres with 0 = missing, poses camera-to-world
 4x4 in OpenCV axes (None = no ground truth for that frame).
 """
@@ -27,7 +27,7 @@ class DatasetError(ValueError):
 
 
 @dataclass(frozen=True)
-class FrameRecord:
+class FrameFiles:
     """Where one frame lives on disk, and what is known about it without opening its images."""
 
     timestamp: float
@@ -68,7 +68,7 @@ class RGBDDataset(Sequence):
         name: str,
         intrinsics: Intrinsics,
         depth_scale: float,
-        records: list[FrameRecord],
+        records: list[FrameFiles],
         what_was_read: str,
     ) -> None:
         """Store the parsed sequence; `what_was_read` names the index files, for the empty-sequence error."""
@@ -80,7 +80,7 @@ class RGBDDataset(Sequence):
         self.name = name
         self.intrinsics = intrinsics
         self.depth_scale = float(depth_scale)
-        self._records: tuple[FrameRecord, ...] = tuple(records)
+        self._records: tuple[FrameFiles, ...] = tuple(records)
 
     # --- the Sequence interface -------------------------------------------------------------------------------
 
@@ -149,7 +149,7 @@ class RGBDDataset(Sequence):
     def _read_depth(self, path: Path) -> np.ndarray:
         return read_depth_raw(path).astype(np.float32) / np.float32(self.depth_scale)
 
-    def _check_registered(self, rgb: np.ndarray, depth: np.ndarray, record: FrameRecord) -> None:
+    def _check_registered(self, rgb: np.ndarray, depth: np.ndarray, record: FrameFiles) -> None:
         """Colour, depth and intrinsics must describe the same pixel grid, or every projection is wrong."""
         if rgb.shape[:2] != depth.shape:
             raise DatasetError(

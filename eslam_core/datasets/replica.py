@@ -23,7 +23,7 @@ import numpy as np
 from eslam_core.camera import Intrinsics
 from eslam_core.datasets.base import (
     DatasetError,
-    FrameRecord,
+    FrameFiles,
     RGBDDataset,
     checked_pose,
     numbered_files,
@@ -111,7 +111,7 @@ class ReplicaDataset(RGBDDataset):
         colour = numbered_files(results, _COLOUR_NAME)
         depth = numbered_files(results, _DEPTH_NAME)
         records = [
-            FrameRecord(float(k), colour[k], depth[k], poses[k] if k < len(poses) else None)
+            FrameFiles(float(k), colour[k], depth[k], poses[k] if k < len(poses) else None)
             for k in sorted(colour.keys() & depth.keys())
         ]
         self._setup(

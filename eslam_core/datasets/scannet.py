@@ -23,7 +23,7 @@ from PIL import Image
 from eslam_core.camera import Intrinsics
 from eslam_core.datasets.base import (
     DatasetError,
-    FrameRecord,
+    FrameFiles,
     RGBDDataset,
     checked_pose,
     empty_sequence_error,
@@ -80,7 +80,7 @@ class ScanNetDataset(RGBDDataset):
         for k in numbers:
             pose_file = pose_files.get(k)
             pose = None if pose_file is None else checked_pose(read_matrix4x4(pose_file, "ScanNet pose"), pose_file)
-            records.append(FrameRecord(k / SCANNET_FRAME_RATE, colour[k], depth[k], pose))
+            records.append(FrameFiles(k / SCANNET_FRAME_RATE, colour[k], depth[k], pose))
 
         if not numbers:
             raise empty_sequence_error(frames, self.kind, looked_for)

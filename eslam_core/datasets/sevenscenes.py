@@ -25,7 +25,7 @@ import numpy as np
 from eslam_core.camera import Intrinsics
 from eslam_core.datasets.base import (
     DatasetError,
-    FrameRecord,
+    FrameFiles,
     RGBDDataset,
     checked_pose,
     image_size,
@@ -108,7 +108,7 @@ class SevenScenesDataset(RGBDDataset):
         for k in sorted(colour.keys() & depth.keys()):
             pose_file = path / f"{colour[k].name.split('.')[0]}.pose.txt"  # frame-NNNNNN, as the images spell it
             pose = checked_pose(read_matrix4x4(pose_file, "7-Scenes pose"), pose_file) if pose_file.is_file() else None
-            records.append(FrameRecord(k / SEVEN_SCENES_FRAME_RATE, colour[k], depth[k], pose))
+            records.append(FrameFiles(k / SEVEN_SCENES_FRAME_RATE, colour[k], depth[k], pose))
         if intrinsics is None and records:
             intrinsics = read_intrinsics_file(path, records[0].depth_path)
         resolved = path.resolve()

@@ -21,7 +21,7 @@ from eslam_core.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_ma
 from eslam_core.trajectory import Trajectory, TrajectoryError
 from eslam_core.datasets.base import (
     DatasetError,
-    FrameRecord,
+    FrameFiles,
     RGBDDataset,
     parse_floats,
     read_text_rows,
@@ -226,7 +226,7 @@ class TUMDataset(RGBDDataset):
                 f"fx, fy, cx, cy)"
             )
         records = [
-            FrameRecord(float(t), root / rgb_file, root / depth_file, pose)
+            FrameFiles(float(t), root / rgb_file, root / depth_file, pose)
             for t, rgb_file, depth_file, pose in zip(rgb_times, rgb_files, depth_files, poses)
         ]
         self._setup(root, root.resolve().name, resolved, resolve_depth_scale(depth_scale, found_scale, TUM_DEPTH_SCALE),

@@ -27,7 +27,7 @@ from eslam_core.evaluation.reconstruction import (
     sample_surface,
 )
 from eslam_core.datasets.tum import read_tum, write_tum
-from eslam_core.evaluation.trajectory import associate, ate, AteResult, rpe, RpeResult, umeyama_alignment
+from eslam_core.evaluation.trajectory_error import associate, ate, AteResult, rpe, RpeResult, umeyama_alignment
 from eslam_core.trajectory import Trajectory, TrajectoryError
 
 __all__ = [

@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from eslam_core.evaluation.trajectory import umeyama_alignment
+from eslam_core.evaluation.trajectory_error import umeyama_alignment
 from eslam_core.trajectory import TrajectoryError
 
 log = logging.getLogger(__name__)

@@ -37,7 +37,7 @@ from eslam_core.mapping.consistency import (
 from eslam_core.evaluation.depth_l1 import depth_l1
 from eslam_core.evaluation.reconstruction import check_mesh, icp_align, load_mesh, reconstruction_metrics
 from eslam_core.datasets.tum import read_tum
-from eslam_core.evaluation.trajectory import associate, ate, path_length, rpe
+from eslam_core.evaluation.trajectory_error import associate, ate, path_length, rpe
 from eslam_core.trajectory import Trajectory
 
 log = logging.getLogger(__name__)

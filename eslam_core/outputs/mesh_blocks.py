@@ -139,7 +139,7 @@ class BlockMesh:
 
 
 @dataclass
-class MapView:
+class MeshSource:
     """What meshing needs of a map: its decoders and bound, and the keyframes for culling and change tracking."""
 
     sdf: SdfFn
@@ -188,8 +188,8 @@ class MapView:
         return layout.observed_boxes(points, 2 * self.truncation)
 
 
-def map_view(scene, skip_depths: Container = ()) -> MapView:
-    """The MapView of a scene map (`SLAM.map`, a runtime's snapshot's, or the mapping process's own): the field in
+def mesh_source(scene, skip_depths: Container = ()) -> MeshSource:
+    """The MeshSource of a scene map (`SLAM.map`, a runtime's snapshot's, or the mapping process's own): the field in
     eval mode, the keyframes' poses and depth images at the frame's resolution (None for the ids in
     `skip_depths`). A keyframe's id is (number, stride): a keyframe the store reduced has another depth image, so it
     counts as a new keyframe."""
@@ -198,7 +198,7 @@ def map_view(scene, skip_depths: Container = ()) -> MapView:
     field_ = scene.field.eval()
     keyframes, (h, w) = list(scene.keyframes), (scene.intr.height, scene.intr.width)
     ids = [(int(kf.number), int(kf.stride)) for kf in keyframes]
-    return MapView(
+    return MeshSource(
         sdf=field_.sdf, color=field_.color, bound=np.asarray(scene.extent, dtype=np.float64),
         truncation=float(scene.cfg.model.truncation), intrinsics=scene.intr, keyframe_ids=ids,
         poses=np.stack([kf.pose.double().numpy() for kf in keyframes]) if keyframes else np.zeros((0, 4, 4)),
@@ -206,7 +206,7 @@ def map_view(scene, skip_depths: Container = ()) -> MapView:
     )
 
 
-def mesh_block(view: MapView, layout: BlockLayout, key: Key, settings: MeshSettings,
+def mesh_block(view: MeshSource, layout: BlockLayout, key: Key, settings: MeshSettings,
                region: Optional[np.ndarray] = None) -> Optional[BlockMesh]:
     """The observed surface inside block `key` (and inside `region`, the box around what was observed there), or
     None where there is none."""
@@ -309,7 +309,7 @@ class IncrementalMesher:
         self._grid_boxes: dict[Key, Optional[np.ndarray]] = {}  # block -> the grid box it would be meshed over now
         self._bound: Optional[np.ndarray] = None
         self._meshed_in: dict[Key, int] = {}  # block -> the view (number) it was last meshed from
-        self._view: Optional[MapView] = None
+        self._view: Optional[MeshSource] = None
         self._views = 0
         self._tick = itertools.count()
         self._passes = 0
@@ -327,7 +327,7 @@ class IncrementalMesher:
         """Every block some keyframe observes: the candidates for meshing."""
         return set(self._observers)
 
-    def update(self, view: MapView, budget_s: float) -> BlockChanges:
+    def update(self, view: MeshSource, budget_s: float) -> BlockChanges:
         """Mesh dirty blocks, then stale ones, until `budget_s` seconds are spent (at least one block per pass)."""
         start = self.clock()
         self._observe(view)
@@ -364,13 +364,13 @@ class IncrementalMesher:
             return None
         return np.stack([np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)])
 
-    def _box(self, view: MapView, key: Key) -> Optional[np.ndarray]:
+    def _box(self, view: MeshSource, key: Key) -> Optional[np.ndarray]:
         """The grid box block `key` is meshed over now (cached until its observations or the bound change)."""
         if key not in self._grid_boxes:
             self._grid_boxes[key] = self.layout.grid_bound(key, view.bound, self.region(key))
         return self._grid_boxes[key]
 
-    def _observe(self, view: MapView) -> None:
+    def _observe(self, view: MeshSource) -> None:
         """New, moved and dropped keyframes make the blocks they observe dirty; so does a change of the map's bound
         (a grown map: blocks at its old border get more room, blocks beyond it become meshable)."""
         present = set(view.keyframe_ids)

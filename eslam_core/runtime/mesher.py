@@ -39,7 +39,7 @@ from eslam_core.camera import Intrinsics
 from eslam_core.child_process import become_child, spawned_with_stop_signals_blocked
 from eslam_core.cpu import lower_priority
 from eslam_core.outputs.mesh import MeshSettings
-from eslam_core.outputs.mesh_blocks import (BlockLayout, IncrementalMesher, Key, MapView, map_view, thinning_stride,
+from eslam_core.outputs.mesh_blocks import (BlockLayout, IncrementalMesher, Key, MeshSource, mesh_source, thinning_stride,
                                             triangle_soup)
 
 log = logging.getLogger("eslam")
@@ -145,7 +145,7 @@ class PackedSnapshot:
 def snapshot_for_meshing(scene, have: set) -> MeshSnapshot:
     """A scene map (`SLAM.map`; in the runtime the mapping process's, see `mesh_snapshot`) as a MeshSnapshot;
     `have`: keyframe ids whose depth was sent."""
-    view = map_view(scene, skip_depths=have)
+    view = mesh_source(scene, skip_depths=have)
     buffer = io.BytesIO()
     torch.save(scene.field, buffer)
     return MeshSnapshot(buffer.getvalue(), view.bound, view.truncation, view.intrinsics, list(view.keyframe_ids),
@@ -185,7 +185,7 @@ class _Worker:
 
     def reset(self) -> None:
         self.mesher: Optional[IncrementalMesher] = None
-        self.view: Optional[MapView] = None
+        self.view: Optional[MeshSource] = None
         self.depths: dict = {}
         self.stride = 1
 
@@ -213,7 +213,7 @@ class _Worker:
         return MeshUpdate(epoch, PackedSoups.of(soups), changes.removed, everything, len(blocks), triangles, stride,
                           changes.meshed, changes.pending, time.monotonic() - wall, time.process_time() - cpu)
 
-    def _view(self, snapshot: MeshSnapshot) -> MapView:
+    def _view(self, snapshot: MeshSnapshot) -> MeshSource:
         # Bytes the caller's torch.save wrote, through a private pipe (not a file): the module is unpickled whole.
         field_ = torch.load(io.BytesIO(snapshot.field), weights_only=False).eval()
         self.depths.update(snapshot.new_depths)
@@ -222,7 +222,7 @@ class _Worker:
             raise ValueError(f"the snapshot lacks the depth images of keyframes {missing[:5]}: build it with the "
                              f"mesher's have() after its last update")
         self.depths = {k: self.depths[k] for k in snapshot.keyframe_ids}  # dropped keyframes are forgotten
-        return MapView(field_.sdf, field_.color, snapshot.bound, snapshot.truncation, snapshot.intrinsics,
+        return MeshSource(field_.sdf, field_.color, snapshot.bound, snapshot.truncation, snapshot.intrinsics,
                        list(snapshot.keyframe_ids), snapshot.poses, [self.depths[k] for k in snapshot.keyframe_ids])
 
 

@@ -38,7 +38,7 @@ from eslam_core.mapping.map_frame import squared_first_pose
 from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.representation.field import SceneField
 from eslam_core.tracking.information import PoseCovariance
-from eslam_core.tracking.odometry import FrameOdometry
+from eslam_core.tracking.odometry import RGBDOdometry
 from eslam_core.tracking.quality import (RESIDUAL_WINDOW, Quality, TrackingEvidence, is_lost, tracking_quality,
                                          typical_loss)
 from eslam_core.tracking.render_tracker import Tracker, constant_velocity, time_ratio
@@ -116,7 +116,7 @@ class TrackingFrontEnd:
         self.fallback_pose = np.eye(4)
         self.odometry = None  # frame-to-frame odometry, its reference the last well-tracked frame
         if cfg.odometry.width > 0 and self.tracker is not None:
-            self.odometry = FrameOdometry(intr, cfg.odometry.width, cfg.camera.max_depth, cfg.odometry.iterations)
+            self.odometry = RGBDOdometry(intr, cfg.odometry.width, cfg.camera.max_depth, cfg.odometry.iterations)
         self.places = None  # the keyframes for relocalization (a KeyframeDatabase), when enabled
         if cfg.relocalization.enabled and self.tracker is not None:
             from eslam_core.tracking.relocalization import KeyframeDatabase  # (OpenCV: loaded only when used)

@@ -36,7 +36,7 @@ def small_images(rgb: torch.Tensor, depth: torch.Tensor, factor: int) -> tuple[n
     return cv2.convertScaleAbs(grey, alpha=255.0), depth_np.astype(np.float32, copy=False)
 
 
-class FrameOdometry:
+class RGBDOdometry:
     """The motion of the camera between the last frame it was given as a reference and a new one."""
 
     def __init__(self, intr: Intrinsics, width: int, max_depth: float = 0.0,
