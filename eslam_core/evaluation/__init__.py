@@ -1,9 +1,11 @@
 """Evaluation of ESLAM runs with the NICE-SLAM / ESLAM protocol, headless on a CPU.
 
-- trajectory: TUM files, timestamp association, Umeyama alignment, ATE and RPE;
+- trajectory_error: timestamp association, Umeyama alignment, ATE and RPE (of `eslam_core.trajectory.Trajectory`s,
+  read from TUM files by `eslam_core.datasets.tum`);
 - reconstruction: surface sampling, accuracy / completion / completion ratio, ICP, mesh checks;
 - depth_l1: depth of both meshes rendered from random views inside the scene;
-- consistency: depth consistency of a set of poses (frames' depths warped into each other), no ground truth needed;
+- the depth consistency of a set of poses (frames' depths warped into each other, no ground truth needed) is the
+  runtime's own health figure and lives in `eslam_core.mapping.consistency`; re-exported here;
 - plots, report, cli: figures, report.json / report.md for a run directory, and `eslam eval`
   (imported on demand: `from eslam_core.evaluation.report import evaluate_run`).
 Culling of meshes to the observed surface lives in eslam_core.outputs.culling (mesh extraction uses it too).
