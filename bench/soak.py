@@ -53,6 +53,25 @@ def memory_mb(pid: int) -> dict[str, float]:
     return out
 
 
+def process_counters(pid: int) -> dict[str, float]:
+    """A process's CPU seconds (user + system), page faults (minor, major) and context switches (voluntary: it
+    waited; involuntary: the scheduler took the core away) so far (Linux): what a stage that got slower spent its
+    time on, or waited for."""
+    out = {}
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        tick = os.sysconf("SC_CLK_TCK")
+        out.update(cpu_s=(int(fields[11]) + int(fields[12])) / tick, minor_faults=int(fields[7]),
+                   major_faults=int(fields[9]))
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            name, _, value = line.partition(":")
+            if name in ("voluntary_ctxt_switches", "nonvoluntary_ctxt_switches"):
+                out[name.split("_")[0]] = int(value)
+    except (OSError, IndexError, ValueError):
+        pass
+    return out
+
+
 def rss_mb(pid: int) -> float:
     return memory_mb(pid)["rss"]
 
@@ -61,18 +80,23 @@ def lap_order(n: int, lap: int) -> range:
     return range(n) if lap % 2 == 0 else range(n - 1, -1, -1)
 
 
-def interval_rows(intervals: list, latency: np.ndarray, i: int) -> dict:
+def interval_rows(intervals: list, latency: np.ndarray, i: int, baseline: dict) -> dict:
     """Interval i's per-stage profile (ms per event over the interval: the difference of the counters at its two
-    ends) and the latency of the poses of the frames played in it."""
-    start = intervals[i - 1] if i > 0 else {"frames": 0, "counters": {}}
+    ends), each process's counters per frame, and the latency of the poses of the frames played in it. `baseline`:
+    the counters when the first interval began."""
+    start = intervals[i - 1] if i > 0 else baseline
     end = intervals[i]
     delta = {name: value - start["counters"].get(name, 0.0) for name, value in end["counters"].items()}
+    frames = max(end["frames"] - start["frames"], 1)
+    processes = {name: {key: (value - start["processes"].get(name, {}).get(key, 0.0)) / frames
+                        for key, value in counters.items()} for name, counters in end.get("processes", {}).items()}
     lat = latency[start["frames"]:end["frames"]]
     lat = lat[np.isfinite(lat)]
     return {"interval": i + 1, "frames": end["frames"] - start["frames"], "poses": len(lat),
             "latency_ms_median": float(np.median(lat) * 1000) if len(lat) else float("nan"),
             "latency_ms_p90": float(np.percentile(lat, 90) * 1000) if len(lat) else float("nan"),
-            "stages": {row["stage"]: row["ms"] for row in stage_profile(delta)}}
+            "stages": {row["stage"]: row["ms"] for row in stage_profile(delta)},
+            "processes_per_frame": processes}
 
 
 def print_intervals(first: dict, last: dict, seconds: float) -> None:
@@ -86,6 +110,12 @@ def print_intervals(first: dict, last: dict, seconds: float) -> None:
         print(f"  {label:<52} {first[key]:8.1f} {last[key]:8.1f}  {last[key] / first[key]:6.2f}")
     print(f"  {'poses / frames played':<52} {first['poses'] / max(first['frames'], 1):8.3f} "
           f"{last['poses'] / max(last['frames'], 1):8.3f}")
+    for name, counters in first["processes_per_frame"].items():
+        for key, label, scale in (("cpu_s", "CPU ms a frame", 1000), ("minor_faults", "page faults a frame", 1),
+                                  ("nonvoluntary", "cores taken away a frame", 1), ("voluntary", "waits a frame", 1)):
+            a = counters.get(key, float("nan")) * scale
+            b = last["processes_per_frame"][name].get(key, float("nan")) * scale
+            print(f"  {name + ': ' + label:<52} {a:8.2f} {b:8.2f}  {b / a if a > 0 else float('nan'):6.2f}")
 
 
 def main() -> int:
@@ -121,6 +151,7 @@ def main() -> int:
     rt = make_runtime(cfg, ds.intrinsics, workers=2, policy=args.policy)
     rt.start()
     pids = {"parent": os.getpid(), **rt.resources()["pids"]}
+    baseline = {"frames": 0, "counters": {}, "processes": {name: process_counters(pid) for name, pid in pids.items()}}
     samples, lap_ends = [], []
     # Per frame played, in arrays (this process's memory is measured too): the pose as tracked, the latency (NaN:
     # no pose), the data set's frame.
@@ -157,8 +188,10 @@ def main() -> int:
             posed[u.index], latency[u.index] = u.pose, u.latency_s
 
     def close_interval() -> None:
-        intervals.append({"frames": k, "counters": rt.worker_figures()})
-        first, last = interval_rows(intervals, latency, 0), interval_rows(intervals, latency, len(intervals) - 1)
+        intervals.append({"frames": k, "counters": rt.worker_figures(),
+                          "processes": {name: process_counters(pid) for name, pid in pids.items()}})
+        first = interval_rows(intervals, latency, 0, baseline)
+        last = interval_rows(intervals, latency, len(intervals) - 1, baseline)
         print(f"interval {len(intervals)} (to frame {k}): {last['latency_ms_median']:.1f} ms median latency, "
               f"{last['poses']} poses of {last['frames']} frames; tracker "
               f"{last['stages'].get('tracker: front end (tracking)', float('nan')):.1f} ms a frame (interval 1: "
@@ -220,7 +253,7 @@ def main() -> int:
                      final)
     growth = final["rss_mb_total"] / after_two["rss_mb_total"] - 1.0
     worst = max(lap_ate) / lap_ate[0] if lap_ate else float("nan")
-    rows = [interval_rows(intervals, latency, i) for i in range(len(intervals))]
+    rows = [interval_rows(intervals, latency, i, baseline) for i in range(len(intervals))]
     print_intervals(rows[0], rows[-1], args.interval)
     worst_lap = min(laps_out, key=lambda r: r["tracked"] / r["played"]) if laps_out else None
     print(f"\nmemory (all processes): {after_two['rss_mb_total']:.0f} MB after lap 2 -> {final['rss_mb_total']:.0f} "
