@@ -168,8 +168,9 @@ class RuntimeHost:
             save(self.runtime, path)
         except (ValueError, OSError, RuntimeCrashed) as error:
             # One line (a full disk: the space needed and what to do); an older file of that name is intact.
-            self.log.error(failure_line(path, error))
-            return False, failure_line(path, error)
+            line = failure_line(path, error)
+            self.log.error(line)
+            return False, line
         self.log.info(f"wrote {path}")
         return True, str(path.resolve())
 
