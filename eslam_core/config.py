@@ -374,6 +374,14 @@ class RelocalizationConfig:
     depth_sigmas: float = 3.0  # a feature agrees with the measured depth within this many sigma(z)
     min_depth_agreement: float = 0.5  # fraction of the reprojected features with measured depth that must agree
     edge_tolerance: float = 0.05  # a keypoint whose 3x3 depths spread over more than this * depth is on an edge
+    # The map checked against itself (tracking/map_check.py): each new keyframe is placed by the features of
+    # keyframes at least `map_check_gap` older (0: no check); the map disagrees where that place and the tracked
+    # pose are more than `map_disagree_m` or `map_disagree_deg` apart. `fast` lock-step, the checks that found a
+    # match: ICL office kt0 300 frames, 16, at most 9.3 cm / 1.5 deg apart; 7-Scenes RedKitchen 400 frames, 9, at
+    # most 8.8 cm / 2.4 deg (its drift and PnP's error on Kinect frames); a slide of the synthetic two planes 48 cm.
+    map_check_gap: int = 20
+    map_disagree_m: float = 0.20
+    map_disagree_deg: float = 10.0
 
     def validate(self, check) -> None:
         check(self.features >= 50, "relocalization.features", "must be >= 50 (ORB keypoints per image)")
@@ -386,6 +394,9 @@ class RelocalizationConfig:
               "must be 'both', 'thumbnail' or 'words'")
         check(self.candidates >= 1, "relocalization.candidates", "must be >= 1")
         check(self.enough_inliers >= self.min_inliers, "relocalization.enough_inliers", "must be >= min_inliers")
+        check(self.map_check_gap >= 0, "relocalization.map_check_gap", "must be >= 0 keyframes (0: no map check)")
+        check(self.map_disagree_m > 0 and self.map_disagree_deg > 0, "relocalization.map_disagree_m",
+              "map_disagree_m and map_disagree_deg must be positive")
         check(0 < self.ratio <= 1, "relocalization.ratio", "must be in (0, 1]")
         check(self.reprojection_px > 0, "relocalization.reprojection_px", "must be positive (pixels)")
         check(self.pixel_sigma > 0 and self.depth_sigma_base > 0 and self.depth_sigma_quadratic >= 0,

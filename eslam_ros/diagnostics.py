@@ -67,6 +67,7 @@ class StatusInputs:
     odometry_problems_now: dict[str, int] = field(default_factory=dict)  # {"odom_missing": 2, ...} this period
     lost: Optional[str] = None  # the camera is lost: why (the newest frame's tracking quality)
     degraded: Optional[str] = None  # the newest pose is degraded: why (its free direction and sigma)
+    map_disagreement_cm: Optional[float] = None  # the map disagrees with itself by this much (else None)
 
 
 def status_level(inputs: StatusInputs, no_input_timeout: float, min_input_rate: float) -> tuple[bytes, str]:
@@ -88,6 +89,10 @@ def status_level(inputs: StatusInputs, no_input_timeout: float, min_input_rate: 
         return WARN, f"tracking lost ({inputs.lost}): no pose published, relocalizing against the keyframes"
     if inputs.degraded:
         return WARN, f"tracking degraded ({inputs.degraded}): poses published with that covariance, not mapped"
+    if inputs.map_disagreement_cm is not None:
+        return WARN, (f"the map disagrees with itself: the newest keyframe lies {inputs.map_disagreement_cm:.0f} cm "
+                      f"from where older keyframes place it (a slide mapped earlier); poses carry it in their "
+                      f"covariance")
     if min_input_rate and inputs.measured_for_s >= INPUT_RATE_WINDOW_S and inputs.pair_rate_hz < min_input_rate:
         return WARN, f"input rate {inputs.pair_rate_hz:.1f} Hz is below {min_input_rate:g} Hz"
     if inputs.skipped_now:

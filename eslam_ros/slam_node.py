@@ -416,7 +416,9 @@ class SlamNode(LifecycleNode):
             silent_s={name: self.inputs.silent_for(name, now) for name in self.watched_inputs()} if self.active
             else {}, pair_rate_hz=values["input_rate_hz"], measured_for_s=now - self.inputs.started,
             lost=f"quality {values.get('tracking_quality', 0.0):.2f}" if self.poses.lost else None,
-            degraded=self.poses.degraded), self.odometry is not None, self.poses.last_position,
+            degraded=self.poses.degraded,
+            map_disagreement_cm=values.get("map_disagreement_cm") if values.get("map_disagrees") else None),
+            self.odometry is not None, self.poses.last_position,
             self.get_clock().now().to_msg(), now)
 
     def watched_inputs(self) -> list[str]:

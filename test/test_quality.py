@@ -144,3 +144,27 @@ def test_config_is_validated():
         QualityConfig(lost_below=0.8, found_above=0.7).validate(check)
     with pytest.raises(ConfigError, match="quality.inliers_low"):
         QualityConfig(inliers_low=0.7, inliers_high=0.6).validate(check)
+
+
+def test_a_pose_is_degraded_where_the_view_leaves_a_direction_free_not_where_it_is_noisy():
+    """Degraded means "free along a direction" (information.py): a covariance as wide but constrained in every
+    direction (real depth noise: the rendering tracker's on 7-Scenes, 2 cm) is published, not degraded."""
+    from dataclasses import replace
+
+    from eslam_core.tracking.information import PoseCovariance
+
+    wide = np.diag([0.03**2] * 3 + [1e-6] * 3)
+    noisy = tracking_quality(replace(evidence(), covariance=PoseCovariance(wide)))
+    assert noisy.value == 1.0 and not noisy.degraded
+    free = tracking_quality(replace(evidence(), covariance=PoseCovariance(wide, free=True)))
+    assert free.degraded and free.value < QualityConfig().found_above and free.reason.startswith("degenerate view")
+    narrow = tracking_quality(replace(evidence(), covariance=PoseCovariance(np.diag([1e-6] * 6), free=True)))
+    assert not narrow.degraded  # a free direction the prior keeps tight (a still camera) is no concern
+
+
+def test_a_map_that_disagrees_with_itself_caps_the_quality_without_degrading_the_view():
+    from dataclasses import replace
+
+    q = tracking_quality(replace(evidence(), map_disagrees="the map disagrees with itself: ..."))
+    assert q.value < QualityConfig().found_above and not q.lost and not q.degraded
+    assert q.reason.startswith("the map disagrees with itself")

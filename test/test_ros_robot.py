@@ -264,6 +264,8 @@ def test_status_level_warns_about_silent_inputs_and_a_low_rate():
     assert level == WARN and message.startswith("tracking degraded (degenerate view: the pose is free along (+1.00")
     assert status_level(StatusInputs(**running, lost="quality 0.00", degraded="x"), 5.0, 0.0)[1].startswith(
         "tracking lost")  # lost says more than degraded
+    level, message = status_level(StatusInputs(**running, map_disagreement_cm=48.0), 5.0, 0.0)
+    assert level == WARN and message.startswith("the map disagrees with itself: the newest keyframe lies 48 cm")
 
 
 def test_odom_carries_the_trackers_covariance_moved_to_the_base():

@@ -71,6 +71,11 @@ def render_rays(field: RadianceField, origins: torch.Tensor, dirs: torch.Tensor,
     """Render depth and colour of rays (R,3) origins / directions with planar-unit directions (on the field's
     device). `missing`: see sample_depths."""
     z = sample_depths(field, origins.detach(), dirs.detach(), depth_gt, cfg, truncation, missing)
+    return render_samples(field, origins, dirs, z)
+
+
+def render_samples(field: RadianceField, origins: torch.Tensor, dirs: torch.Tensor, z: torch.Tensor) -> RenderOutput:
+    """Render depth and colour of rays at given sample depths z (R, N) along them."""
     points = origins[:, None, :] + z[..., None] * dirs[:, None, :]
     flat = points.reshape(-1, 3)
     sdf = field.sdf(flat).reshape(z.shape)

@@ -87,6 +87,11 @@ class Health:
     # mapping/consistency.py): median |depth residual| in mm and the share within 3 cm; NaN before two keyframes.
     consistency_mm: float = math.nan
     consistency_agree: float = math.nan
+    # The newest check of the map against itself (tracking/map_check.py): how far the newest keyframe placed by
+    # older keyframes' features lies from where it was tracked (cm; NaN before a check found a match), and whether
+    # that is a disagreement (a slide mapped earlier).
+    map_disagreement_cm: float = math.nan
+    map_disagrees: bool = False
     # Where the workers' time goes: milliseconds per event of each stage (runtime/shared.py: STAGES; multi-process).
     stage_ms: dict = field(default_factory=dict)
 

@@ -13,6 +13,7 @@ process-wide: `threads` (or `run.threads`) sets it for the whole process.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 import traceback
@@ -132,9 +133,12 @@ class InProcessRuntime(SavingMixin):
         with self._cond:
             pending, c = len(self._inputs), dict(self._counts)
         with self._lock:
+            check = self.slam.tracking.map_check  # (replaced whole by the SLAM thread, never changed in place)
             return Health(frames_received=c["received"], frames_tracked=c["tracked"], frames_dropped=c["dropped"],
                           input_queue_depth=pending, keyframe_queue_depth=0, map_version=c["mapping_steps"],
-                          **self._parent.health_figures(), **self._memory, peak_memory_mb={"process": peak_rss_mb()})
+                          **self._parent.health_figures(), **self._memory, peak_memory_mb={"process": peak_rss_mb()},
+                          map_disagreement_cm=math.nan if check is None else 100.0 * check.metres,
+                          map_disagrees=check is not None and check.disagrees)
 
     def _measure_map(self, epoch: int) -> None:
         """The map's memory and keyframe consistency for the health (computed outside the caller's lock)."""

@@ -455,6 +455,8 @@ class MultiProcessRuntime(SavingMixin):
                 keyframes_kept=int(b.get(Counter.KEYFRAMES_KEPT)),
                 consistency_mm=b.get(Counter.CONSISTENCY_MM) if b.get(Counter.CONSISTENCY_PAIRS) else math.nan,
                 consistency_agree=b.get(Counter.CONSISTENCY_AGREE) if b.get(Counter.CONSISTENCY_PAIRS) else math.nan,
+                map_disagreement_cm=b.get(Counter.MAP_CHECK_CM) if b.get(Counter.MAP_CHECK) else math.nan,
+                map_disagrees=b.get(Counter.MAP_CHECK) == 2,
                 peak_memory_mb={"parent": peak_rss_mb(), "tracker": b.get(Counter.TRACKER_PEAK_MB),
                                 "mapper": b.get(Counter.MAPPER_PEAK_MB)},
                 stage_ms={row["stage"]: round(row["ms"], 2) for row in stage_profile(b.snapshot())

@@ -313,6 +313,8 @@ class Counter(IntEnum):
     MAP_MEASURE_S = 34  # mapper: memory and the consistency score after each step
     TRACK_INDEX_S = 35  # tracker: keyframes indexed for relocalization (while it waits for frames, if it does)
     TRACK_WAIT_S = 36  # tracker: waiting for the mapper (the first map; offline, runtime.max_keyframe_lag)
+    MAP_CHECK = 37  # tracker: the newest map check (tracking/map_check.py): 0 none yet, 1 agrees, 2 disagrees
+    MAP_CHECK_CM = 38  # tracker: its distance between the tracked and the placed keyframe, cm
 
 
 # The stage counters, each with the events it is divided by: (stage, seconds, events, events not timed). The

@@ -416,7 +416,15 @@ class TrackerWorker:
 
     def _index_idle(self) -> bool:
         with self.ch.board.timed(Counter.TRACK_INDEX_S):
-            return self.session.index_next()
+            indexed = self.session.index_next()
+        self._report_map_check()
+        return indexed
+
+    def _report_map_check(self) -> None:
+        check = self.session.map_check
+        if check is not None:
+            self.ch.board.set(Counter.MAP_CHECK_CM, 100.0 * check.metres)
+            self.ch.board.set(Counter.MAP_CHECK, 2.0 if check.disagrees else 1.0)
 
     def _sync_epoch(self) -> None:
         epoch = self.ch.control.epoch
@@ -517,6 +525,7 @@ class TrackerWorker:
                 self._hand_over(kf, None)
             with board.timed(Counter.TRACK_INDEX_S):
                 self.session.remember(kf)  # (indexed now only if the tracker was not idle for the older ones)
+            self._report_map_check()
         self.tracked += 1
         board.add(Counter.TRACKED)
         board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())

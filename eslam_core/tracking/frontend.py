@@ -38,6 +38,7 @@ from eslam_core.mapping.map_frame import squared_first_pose
 from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.representation.field import SceneField
 from eslam_core.tracking.information import PoseCovariance
+from eslam_core.tracking.map_check import MapCheck, check_map, widened
 from eslam_core.tracking.odometry import RGBDOdometry
 from eslam_core.tracking.quality import (RESIDUAL_WINDOW, Quality, TrackingEvidence, is_lost, tracking_quality,
                                          typical_loss)
@@ -117,6 +118,7 @@ class TrackingFrontEnd:
         self.odometry = None  # frame-to-frame odometry, its reference the last well-tracked frame
         if cfg.odometry.width > 0 and self.tracker is not None:
             self.odometry = RGBDOdometry(intr, cfg.odometry.width, cfg.camera.max_depth, cfg.odometry.iterations)
+        self.map_check: Optional[MapCheck] = None  # the newest keyframe placed by older ones (map_check.py)
         self.places = None  # the keyframes for relocalization (a KeyframeDatabase), when enabled
         if cfg.relocalization.enabled and self.tracker is not None:
             from eslam_core.tracking.relocalization import KeyframeDatabase  # (OpenCV: loaded only when used)
@@ -147,10 +149,21 @@ class TrackingFrontEnd:
             return False
         kf = self.unindexed.pop(0)
         self.places.add(kf.number, kf.rgb.numpy(), kf.depth_image().numpy(), kf.pose, self.intr)
+        if not self._loaded_unindexed:  # (a loaded map's keyframes were checked when they were made)
+            check = check_map(self.places, kf.number, kf.pose.double().numpy(), self.intr, self.cfg.relocalization)
+            if check is not None:
+                if check.disagrees:
+                    log.warning("%s", check.reason)
+                self.map_check = check
         if not self.unindexed and self._loaded_unindexed:  # a loaded map: its words, before the first query
             self._loaded_unindexed = False
             self.places.build_vocabulary()
         return True
+
+    @property
+    def map_disagrees(self) -> Optional[MapCheck]:
+        """The newest map check, where it found the map disagreeing with itself (else None)."""
+        return self.map_check if self.map_check is not None and self.map_check.disagrees else None
 
     def forget(self, numbers) -> None:
         """Keyframes the map's store dropped (as redundant or over its budget) are not relocalized against: the
@@ -267,11 +280,13 @@ class TrackingFrontEnd:
         evidence = TrackingEvidence(result.depth_fraction, result.inlier_fraction, result.observed_fraction,
                                     result.loss, (torch.linalg.inv(init.double()) @ pose.double()).numpy(),
                                     typical_loss(self.recent_losses), 1.0 if found is not None else gap, self.lost,
-                                    found is not None or self._prior_holds(pf), result.covariance)
+                                    found is not None or self._prior_holds(pf), result.covariance,
+                                    None if self.map_disagrees is None else self.map_disagrees.reason)
         quality = tracking_quality(evidence, self.cfg.quality)
         tracked = self._decided(len(trajectory), pose, init, result.loss, quality,
                                 None if found is None else found.keyframe_id, pf, odometry_frame)
-        tracked.covariance = result.covariance
+        tracked.covariance = result.covariance if self.map_disagrees is None else \
+            widened(result.covariance, self.map_disagrees)
         return tracked
 
     def dead_reckon(self, pf: PreparedFrame, trajectory: TrackedTrajectory) -> Optional[TrackedPose]:

@@ -49,6 +49,7 @@ class PoseCovariance:
     """A tracked pose's uncertainty."""
 
     matrix: np.ndarray  # (6, 6) world frame, x y z roll pitch yaw (metres, radians)
+    free: bool = False  # some direction is not constrained by the frame (its variance is the prior's)
 
     @property
     def sigma_m(self) -> float:
@@ -118,7 +119,7 @@ def pose_covariance(H: np.ndarray, chi2: float, n: int, t: np.ndarray, depth: fl
     # (v_c, w) = D s: the camera's move and its turn, which is what REP 103's pose covariance is of.
     D = _turn_scale(depth)
     covariance = D @ (vectors * variances) @ vectors.T @ D
-    return PoseCovariance(0.5 * (covariance + covariance.T))
+    return PoseCovariance(0.5 * (covariance + covariance.T), not constrained.all())
 
 
 def covariance_at(covariance: np.ndarray, lever: np.ndarray) -> np.ndarray:

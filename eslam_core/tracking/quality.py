@@ -20,9 +20,12 @@ A tracked frame gives these pieces of evidence, each turned into a score in [0, 
   which on 7-Scenes restarts were poses 1-4 m off with a quarter to half of their points fitting the map.
 - constraint: the pose covariance (information.py). A view that leaves a direction free (a wall, two planes, a
   corridor) gives a pose that may be fine or may have slid along it, and nothing in the residuals tells which:
-  where the covariance's largest position or rotation axis exceeds `degraded_sigma_m` / `degraded_sigma_deg`, the
-  frame is *degraded*: its quality is capped below `found_above`, it makes no keyframe, and the reason names the
+  where the frame leaves a direction free and the covariance's largest position or rotation axis exceeds
+  `degraded_sigma_m` / `degraded_sigma_deg`, the frame is *degraded*: its quality is capped below `found_above`, it makes no keyframe, and the reason names the
   free direction.
+- map: whether the map disagrees with itself (map_check.py: a slide mapped earlier). The pose may be right against
+  the newer part of the map and wrong against the older: its quality is capped like a degraded frame's, but
+  mapping goes on (the view itself is fine).
 The quality is the weakest score (one bad piece of evidence is enough to distrust a pose), and the reason names it.
 A frame is *lost* below `lost_below`; a lost camera counts as found again only at `found_above` (hysteresis, so
 that a marginal frame does not flip the state back and forth).
@@ -54,6 +57,7 @@ class TrackingEvidence:
     lost_before: bool = False  # the camera was lost at the previous frame: the pose must show it is in the map
     anchored: bool = True  # while lost: the tracker started from a relocalization, the odometry or a tracked pose
     covariance: Optional[PoseCovariance] = None  # of the returned pose (None: not measured)
+    map_disagrees: Optional[str] = None  # the map disagrees with itself (map_check.py): why
 
 
 @dataclass(frozen=True)
@@ -98,6 +102,8 @@ def tracking_quality(e: TrackingEvidence, cfg: Optional[QualityConfig] = None) -
         ratio = e.loss / e.typical_loss
         scores["residual"] = (1.0 - ramp(ratio, cfg.residual_high, cfg.residual_low),
                               f"loss {ratio:.1f}x the recent frames'")
+    if e.map_disagrees:
+        scores["map"] = (DEGRADED_QUALITY, e.map_disagrees)
     if e.lost_before and not e.anchored:
         scores["start"] = (0.0, "no keyframe matches the view, and no pose was tracked yet to start from")
     if e.lost_before and math.isfinite(e.observed_fraction):
@@ -106,7 +112,7 @@ def tracking_quality(e: TrackingEvidence, cfg: Optional[QualityConfig] = None) -
                             f"pose: not found yet")
     name = min(scores, key=lambda k: scores[k][0])
     value, why = scores[name]
-    degraded = e.covariance is not None and not value < cfg.lost_below and (
+    degraded = e.covariance is not None and e.covariance.free and not value < cfg.lost_below and (
         e.covariance.sigma_m > cfg.degraded_sigma_m or e.covariance.sigma_deg > cfg.degraded_sigma_deg)
     if degraded:
         value, why = min(value, DEGRADED_QUALITY), degenerate_view(e.covariance)

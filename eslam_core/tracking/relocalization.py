@@ -293,10 +293,25 @@ class KeyframeDatabase:
             best.seconds = time.perf_counter() - start
         return best
 
-    def candidates(self, query: _Query) -> list[int]:
-        """The keyframes most like the frame, in the order they are verified: the best `candidates` of each
-        ranking, alternating between the two (thumbnail first), without repeats."""
-        ids = list(self.entries)
+    def place(self, keyframe_id: int, intr: Intrinsics, older_than: int) -> Optional[Relocalization]:
+        """Where the features of the keyframes numbered below `older_than` place a stored keyframe (by its own
+        stored features), or None if none of them explains it: the map checked against itself."""
+        entry = self.entries[int(keyframe_id)]
+        older = [i for i in self.entries if i < older_than]
+        if not older or len(entry.descriptors) < self.cfg.min_inliers:
+            return None
+        query = _Query(entry.keypoints, entry.descriptors, entry.points_cam[:, 2], entry.thumbnail)
+        best: Optional[Relocalization] = None
+        for other in self.candidates(query, older):
+            found = self._verify(query, self.entries[other], intr)
+            if found is not None and (best is None or found.inliers > best.inliers):
+                best = found
+        return best
+
+    def candidates(self, query: _Query, among: Optional[list[int]] = None) -> list[int]:
+        """The keyframes (of `among`, default all) most like the frame, in the order they are verified: the best
+        `candidates` of each ranking, alternating between the two (thumbnail first), without repeats."""
+        ids = list(self.entries) if among is None else among
         k, how = self.cfg.candidates, self.cfg.retrieval
         rankings = []
         if how in ("both", "thumbnail"):

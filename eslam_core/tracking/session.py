@@ -20,6 +20,7 @@ from eslam_core.frames import PreparedFrame
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.scene_map import initial_extent
 from eslam_core.tracking.frontend import MapView, TrackedPose, TrackingFrontEnd
+from eslam_core.tracking.map_check import MapCheck
 from eslam_core.trajectory import FrameRecord, TrackedTrajectory
 
 
@@ -98,6 +99,11 @@ class TrackingSession:
 
     def index_next(self) -> bool:
         return self.frontend.index_next()
+
+    @property
+    def map_check(self) -> Optional[MapCheck]:
+        """The newest check of the map against itself (map_check.py), None before one found a match."""
+        return self.frontend.map_check
 
     def apply(self, corrections: PoseCorrections) -> None:
         """Mapping's corrections: every frame moves with its keyframe (trajectory.py), the front end predicts and
