@@ -21,8 +21,9 @@ A tracked frame gives these pieces of evidence, each turned into a score in [0, 
 - constraint: the pose covariance (information.py). A view that leaves a direction free (a wall, two planes, a
   corridor) gives a pose that may be fine or may have slid along it, and nothing in the residuals tells which:
   where the frame leaves a direction free and the covariance's largest position or rotation axis exceeds
-  `degraded_sigma_m` / `degraded_sigma_deg`, the frame is *degraded*: its quality is capped below `found_above`, it makes no keyframe, and the reason names the
-  free direction.
+  `degraded_sigma_m` / `degraded_sigma_deg`, the frame is *degraded*: its quality is capped below `found_above`,
+  it makes no keyframe, and the reason names the free direction. A pose constrained in every direction is not
+  degraded however wide its covariance (real depth noise: published, and mapped).
 - map: whether the map disagrees with itself (map_check.py: a slide mapped earlier). The pose may be right against
   the newer part of the map and wrong against the older: its quality is capped like a degraded frame's, but
   mapping goes on (the view itself is fine).
