@@ -82,8 +82,9 @@ class Tracker:
         """Rays are drawn from pixels whose depth point lies in `extent` (the map's) at the starting pose, from a
         pool of 8 x `tracking.rays` of them; `observed` restricts the rays with `render_tracker.observed_only`
         (otherwise, as in the paper and the official code, any pixel with depth may be drawn); `keyframe` and
-        `free_prior` are not used (Adam has no normal equations to tell the directions the frame constrains); `map_version` changes whenever the field's values do (None: unknown). Inputs and the result are host
-        tensors; the work runs on the field's device."""
+        `free_prior` are not used (Adam steps along every direction; the normal equations are made once, at the
+        end, for the covariance); `map_version` changes whenever the field's values do (None: unknown). Inputs and
+        the result are host tensors; the work runs on the field's device."""
         tc, rc = self.tracking, self.settings
         device = field.device
         self._on(device)
