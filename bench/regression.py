@@ -29,11 +29,17 @@ ICL, KITCHEN = "icl_office_kt0", "7scenes_redkitchen_0_399"
 # latency median 29-34 ms, ATE 0.24-0.27 cm.
 BOUNDS = {
     "icl_ate_cm": (0.4, "max"),
-    "icl_frames_per_s": (10.0, "min"),
+    # Frames/s follow the machine's speed: 13.6-17.1 and 12.8-14.1 measured on the development machine, but on
+    # 2026-12-07 the same machine ran everything 1.6-1.9x slower (the suite 27 min instead of 14) and the commit
+    # before that day's changes gave 8.9 / 9.3 on ICL, the changes 9.3 / 9.6. The bounds catch a collapse (half the
+    # usual speed), not a slower machine.
+    "icl_frames_per_s": (7.0, "min"),
     "kitchen_ate_cm": (2.5, "max"),
-    "kitchen_frames_per_s": (8.0, "min"),
-    "replay_posed_fraction": (0.9, "min"),
-    "replay_latency_median_ms": (60.0, "max"),
+    "kitchen_frames_per_s": (6.0, "min"),
+    # The replay on that slower day, 16 runs of each of two commits: 259-297 of 300 frames posed, latency median
+    # 33.5-53.8 ms (README, "The system layer redesign, measured"): the bounds were 0.9 and 60 ms until then.
+    "replay_posed_fraction": (0.8, "min"),
+    "replay_latency_median_ms": (80.0, "max"),
     "replay_ate_cm": (0.6, "max"),
 }
 
