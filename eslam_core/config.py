@@ -377,8 +377,8 @@ class RelocalizationConfig:
     # The map checked against itself (tracking/map_check.py): each new keyframe is placed by the features of
     # keyframes at least `map_check_gap` older (0: no check); the map disagrees where that place and the tracked
     # pose are more than `map_disagree_m` or `map_disagree_deg` apart. `fast` lock-step, the checks that found a
-    # match: ICL office kt0 300 frames, 16, at most 9.3 cm / 1.5 deg apart; 7-Scenes RedKitchen 400 frames, 9, at
-    # most 8.8 cm / 2.4 deg (its drift and PnP's error on Kinect frames); a slide of the synthetic two planes 48 cm.
+    # match: ICL office kt0 300 frames, 16, at most 9.2 cm / 1.5 deg apart; 7-Scenes RedKitchen 400 frames, 9, at
+    # most 8.1 cm / 2.2 deg (its drift and PnP's error on Kinect frames); a slide of the synthetic two planes 48 cm.
     map_check_gap: int = 20
     map_disagree_m: float = 0.20
     map_disagree_deg: float = 10.0

@@ -277,16 +277,16 @@ class TrackingFrontEnd:
                         pf.index)
             pose = init
         pose = orthonormalize(pose)
+        disagrees = self.map_disagrees
         evidence = TrackingEvidence(result.depth_fraction, result.inlier_fraction, result.observed_fraction,
                                     result.loss, (torch.linalg.inv(init.double()) @ pose.double()).numpy(),
                                     typical_loss(self.recent_losses), 1.0 if found is not None else gap, self.lost,
                                     found is not None or self._prior_holds(pf), result.covariance,
-                                    None if self.map_disagrees is None else self.map_disagrees.reason)
+                                    None if disagrees is None else disagrees.reason)
         quality = tracking_quality(evidence, self.cfg.quality)
         tracked = self._decided(len(trajectory), pose, init, result.loss, quality,
                                 None if found is None else found.keyframe_id, pf, odometry_frame)
-        tracked.covariance = result.covariance if self.map_disagrees is None else \
-            widened(result.covariance, self.map_disagrees)
+        tracked.covariance = result.covariance if disagrees is None else widened(result.covariance, disagrees)
         return tracked
 
     def dead_reckon(self, pf: PreparedFrame, trajectory: TrackedTrajectory) -> Optional[TrackedPose]:

@@ -282,13 +282,7 @@ class KeyframeDatabase:
             return None  # a covered lens, a blank wall: nothing to match
         query = _Query(uv, desc, depth_at(depth, uv, self.cfg.edge_tolerance),
                        thumbnail(grey, self.cfg.thumbnail_width, self.cfg.thumbnail_blur))
-        best: Optional[Relocalization] = None
-        for keyframe_id in self.candidates(query):
-            found = self._verify(query, self.entries[keyframe_id], intr)
-            if found is not None and (best is None or found.inliers > best.inliers):
-                best = found
-                if best.inliers >= self.cfg.enough_inliers:
-                    break
+        best = self._best(query, self.candidates(query), intr)
         if best is not None:
             best.seconds = time.perf_counter() - start
         return best
@@ -301,11 +295,17 @@ class KeyframeDatabase:
         if not older or len(entry.descriptors) < self.cfg.min_inliers:
             return None
         query = _Query(entry.keypoints, entry.descriptors, entry.points_cam[:, 2], entry.thumbnail)
+        return self._best(query, self.candidates(query, older), intr)
+
+    def _best(self, query: _Query, candidates: list[int], intr: Intrinsics) -> Optional[Relocalization]:
+        """The candidate keyframe giving the most inliers, verified in order until one gives `enough_inliers`."""
         best: Optional[Relocalization] = None
-        for other in self.candidates(query, older):
-            found = self._verify(query, self.entries[other], intr)
+        for keyframe_id in candidates:
+            found = self._verify(query, self.entries[keyframe_id], intr)
             if found is not None and (best is None or found.inliers > best.inliers):
                 best = found
+                if best.inliers >= self.cfg.enough_inliers:
+                    break
         return best
 
     def candidates(self, query: _Query, among: Optional[list[int]] = None) -> list[int]:
