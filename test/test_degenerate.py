@@ -33,12 +33,10 @@ def scene(tmp_path_factory):
     return get
 
 
-@pytest.mark.parametrize("view, preset, workers", [
-    ("two_planes", "fast", 1), ("plane", "live", 1), ("two_planes", "live", 2), ("plane", "fast", 2)])
-def test_a_view_that_leaves_the_pose_free_is_flagged_never_mapped_and_left_again(scene, view, preset, workers):
-    path = scene(view)
+def _through_the_runtime(path, preset: str, workers: int):
+    """Every frame of a generated sequence through the runtime: the updates, each pose's error (metres), whether it
+    was flagged (degraded or lost) and whether it was mapped (a keyframe)."""
     data = open_dataset(path, "tum")
-    stretch, _ = stretch_of(path)
     updates = []
     rt = make_runtime(load_config(preset), data.intrinsics, workers=workers, policy="offline", threads=1)
     with rt:
@@ -51,14 +49,42 @@ def test_a_view_that_leaves_the_pose_free_is_flagged_never_mapped_and_left_again
     error = np.linalg.norm(np.stack([u.pose[:3, 3] for u in updates]) - truth, axis=1)
     flagged = np.array([u.degraded or u.lost for u in updates])
     keyframe = np.array([u.keyframe for u in updates])
+    return truth, error, flagged, keyframe
+
+
+def _flagged_unmapped_and_back(truth, error, flagged, keyframe, stretch, start: int = 0):
+    """From frame `start` on: a pose over FLAG_ABOVE_M off is flagged and not mapped; the view was seen for what it
+    is; the last 10 frames are back under BACK_UNDER_M (and a camera that stood still would fail)."""
     off = error > FLAG_ABOVE_M
+    off[:start] = False
     assert not (off & ~flagged).any(), f"unflagged frames {np.flatnonzero(off & ~flagged)} are " \
         f"{100 * error[off & ~flagged].max():.1f} cm off"
     assert not (off & keyframe).any(), f"frames {np.flatnonzero(off & keyframe)} were mapped"
     assert flagged[stretch.start - 20:stretch.stop].any()  # the view was seen for what it is
-    after = slice(len(data) - 10, len(data))
+    after = slice(len(error) - 10, len(error))
     assert error[after].max() < BACK_UNDER_M, f"after the stretch still {100 * error[after].max():.1f} cm off"
     assert np.linalg.norm(truth[after] - truth[0], axis=1).min() > 10 * BACK_UNDER_M  # a still camera fails
+
+
+@pytest.mark.parametrize("view, preset, workers", [
+    ("two_planes", "fast", 1), ("plane", "live", 1), ("two_planes", "live", 2), ("plane", "fast", 2)])
+def test_a_view_that_leaves_the_pose_free_is_flagged_never_mapped_and_left_again(scene, view, preset, workers):
+    path = scene(view)
+    _flagged_unmapped_and_back(*_through_the_runtime(path, preset, workers), stretch_of(path)[0])
+
+
+@pytest.mark.parametrize("preset, workers", [("fast", 1), ("live", 2)])
+def test_the_corridor_is_held_through_its_stretch_and_placed_again_after_it(scene, preset, workers):
+    """The corridor looked along: its pose is held (not run off by a velocity made of the odometry's moves along
+    it), every frame that may have slid says so until the keyframes place the camera again after the turn back,
+    and the camera is then back under 1 cm. Left open (issue 42): the turn into the corridor, where the view still
+    constrains the pose weakly, follows the odometry's wrong moves along it (1.6 and 4.7 cm where the camera moved
+    0.2) for a frame or two, unflagged: those frames are bounded, not flagged."""
+    path = scene("corridor")
+    truth, error, flagged, keyframe = _through_the_runtime(path, preset, workers)
+    onset = int(np.flatnonzero(flagged)[0])
+    assert error[:onset].max() < 0.07, f"{100 * error[:onset].max():.1f} cm off before the view was flagged"
+    _flagged_unmapped_and_back(truth, error, flagged, keyframe, stretch_of(path)[0], start=onset)
 
 
 @pytest.mark.parametrize("view, method", [("two_planes", "sdf"), ("corridor", "sdf"), ("two_planes", "render")])
@@ -125,7 +151,10 @@ def test_a_slide_already_in_the_map_is_caught_when_the_camera_returns(scene, mon
     assert abs(check.metres - error[first]) < 0.1, (check.metres, error[first])  # the slide, measured
     after = steps[first + 1:]
     assert len(after) >= 10 and all(s.quality < cfg.quality.found_above for s in after)
-    assert all(np.sqrt(np.linalg.eigvalsh(s.covariance[:3, :3])[-1]) >= check.metres for s in after)
+    # (Each later keyframe is checked too: a step's covariance is widened by the check in effect when it was
+    # tracked, the one after the step before or one made during the step.)
+    assert all(np.sqrt(np.linalg.eigvalsh(steps[i].covariance[:3, :3])[-1])
+               >= min(checks[i - 1].metres, checks[i].metres) for i in range(first + 1, len(steps)))
     assert all(s.quality == 1.0 for s in steps[:first - 10])  # nothing said before
 
 

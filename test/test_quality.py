@@ -168,3 +168,19 @@ def test_a_map_that_disagrees_with_itself_caps_the_quality_without_degrading_the
     q = tracking_quality(replace(evidence(), map_disagrees="the map disagrees with itself: ..."))
     assert q.value < QualityConfig().found_above and not q.lost and not q.degraded
     assert q.reason.startswith("the map disagrees with itself")
+
+
+def test_an_unanchored_pose_is_degraded_on_a_constrained_view_until_placed_again():
+    """After a run of views that left the pose free, a constrained view's pose may still carry the slide: it is
+    degraded (not mapped) with the reason, though its own covariance is tight; a lost frame stays lost."""
+    from dataclasses import replace
+
+    from eslam_core.tracking.information import PoseCovariance
+
+    tight = PoseCovariance(np.diag([1e-6] * 6))
+    why = "not placed by the keyframes yet since a view left the pose free along (+1.00, +0.00, +0.00) (3 frames)"
+    q = tracking_quality(replace(evidence(), covariance=tight, unanchored=why))
+    assert q.degraded and not q.lost and q.value < QualityConfig().found_above and q.reason == why
+    assert not tracking_quality(replace(evidence(), covariance=tight)).degraded
+    lost = tracking_quality(replace(evidence(), inlier_fraction=0.05, unanchored=why))
+    assert lost.lost and not lost.degraded

@@ -32,7 +32,7 @@ import torch
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
 from eslam_core.frames import PreparedFrame, rgb_uint8
-from eslam_core.geometry import orthonormalize
+from eslam_core.geometry import orthonormalize, rotation_angle_deg
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.map_frame import squared_first_pose
 from eslam_core.mapping.observed import ObservedSurfaces
@@ -40,8 +40,8 @@ from eslam_core.representation.field import SceneField
 from eslam_core.tracking.information import PoseCovariance
 from eslam_core.tracking.map_check import MapCheck, check_map, widened
 from eslam_core.tracking.odometry import RGBDOdometry
-from eslam_core.tracking.quality import (RESIDUAL_WINDOW, Quality, TrackingEvidence, is_lost, tracking_quality,
-                                         typical_loss)
+from eslam_core.tracking.quality import (RESIDUAL_WINDOW, Quality, TrackingEvidence, is_lost, leaves_pose_free,
+                                         tracking_quality, typical_loss)
 from eslam_core.tracking.render_tracker import Tracker, constant_velocity, time_ratio
 from eslam_core.tracking.result import TrackingResult
 from eslam_core.tracking.sdf_tracker import SDFTracker
@@ -56,6 +56,11 @@ DEAD_RECKONED_QUALITY = 0.5  # of a pose from the odometry alone (dead_reckon): 
 # may have slid along the free direction, and a tracker back on a constrained view from a pose tens of centimetres
 # off can settle there with every point on the map (the generated corridor, 36 cm off).
 RECHECK_AFTER = 5
+# Frames an unanchored pose (quality.py: after such a run, not yet placed by the keyframes) waits for them before
+# tracking goes on from it as it is: a camera that walked on into new space is never placed, and must map again.
+# The map check (map_check.py) still says so later if that pose was off.
+ANCHOR_WAIT = 90
+AGREE_M, AGREE_DEG = 0.03, 3.0  # two poses of a frame this close are the same start for a tracker
 
 
 # A view with less of its depth in mapped space than this has left the map: against a map that lags the keyframes,
@@ -68,6 +73,12 @@ def make_tracker(cfg: Config, dirs_cam: torch.Tensor, intr: Intrinsics):
     if cfg.tracking.method == "sdf":
         return SDFTracker.of(cfg, dirs_cam, intr)
     return Tracker.of(cfg, dirs_cam, intr.height, intr.width)
+
+
+def agrees(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two poses of a frame are the same within a tracker's basin (AGREE_M, AGREE_DEG)."""
+    d = np.linalg.inv(a) @ b
+    return float(np.linalg.norm(d[:3, 3])) < AGREE_M and rotation_angle_deg(d[:3, :3]) < AGREE_DEG
 
 
 def left_the_map(result: TrackingResult) -> bool:
@@ -111,7 +122,9 @@ class TrackingFrontEnd:
         self.good: list[int] = []  # trajectory positions of the last well-tracked frames (the prediction's)
         self.recent_losses: deque = deque(maxlen=RESIDUAL_WINDOW)  # well-tracked frames' (the residual's)
         self.since_keyframe = 0
-        self.degraded_run = 0  # degraded frames in a row (quality.py)
+        self.degraded_run = 0  # frames in a row whose view left the pose free (quality.py)
+        self.unanchored: Optional[PoseCovariance] = None  # after a long such run: its last frame's covariance
+        self.unanchored_for = 0  # frames since the run ended
         self.unindexed: list = []  # keyframes not in `places` yet (see remember)
         self._loaded_unindexed = False
         self.fallback_pose = np.eye(4)
@@ -215,10 +228,10 @@ class TrackingFrontEnd:
         The odometry sees what the tracker sees: where the view leaves a direction free (a wall, a corridor) its
         motion along it is a guess too, and on the synthetic degenerate views it returned motions 3-25 cm off
         along it, frame after frame, while the camera crept 0.2 cm. A constant velocity is no better there: one
-        such motion becomes the velocity, and the corridor's pose ran off by 13 cm a frame. Along what the frame
-        does not constrain the tracker keeps the last pose (information.py): the error grows no faster than the
-        camera moves, and the frame says it is degraded. External odometry does not see the view: its pose is
-        kept as it is."""
+        such motion becomes the velocity. Along what the frame does not constrain the tracker keeps the last pose
+        (information.py), and after a degraded frame the prediction keeps the camera where it was (`_held`): the
+        error grows no faster than the camera moves, and the frame says it is degraded. External odometry does
+        not see the view: its pose is kept as it is."""
         if len(trajectory) == 0:
             return self.fallback_pose, 1.0, None
         last = self.good[-1] if self.good else len(trajectory) - 1
@@ -231,19 +244,28 @@ class TrackingFrontEnd:
             if self.cfg.tracking.mode == "external":
                 return self.map_from_odom @ pf.odom_pose, gap, None
             return prev @ np.linalg.inv(self.last_odom) @ pf.odom_pose, gap, None
-        # After a degraded frame the odometry is not asked: on the view that left the pose free its motions were
-        # off by 3-25 cm frame after frame, and one of them is the start along the directions the tracker holds.
-        if odometry_frame is not None and self.odometry.reference_key == last and not self.degraded_run:
+        if odometry_frame is not None and self.odometry.reference_key == last:
             motion = self.odometry.motion(odometry_frame)
             if motion is not None:
-                return prev @ motion, gap, prev
+                return self._held(prev @ motion, prev), gap, None if self.degraded_run else prev
         # After a long pause (over MAX_EXTRAPOLATION frame gaps) the velocity says nothing: predict no motion. A
         # camera lost for a few frames keeps the velocity of its last tracked ones: they are the frames before the
         # loss, and a camera that walked on while lost (2.5 cm a frame on the synthetic long room) was otherwise
         # refined from where it was last tracked, 10 cm behind, and on a wall that lets the pose slide, found there.
         if len(self.good) < 2 or not self.cfg.tracking.constant_velocity or gap > MAX_EXTRAPOLATION:
             return prev, gap, None
-        return constant_velocity(trajectory.pose(self.good[-2]), prev, gap), gap, None
+        return self._held(constant_velocity(trajectory.pose(self.good[-2]), prev, gap), prev), gap, None
+
+    def _held(self, predicted: np.ndarray, prev: np.ndarray) -> np.ndarray:
+        """After a degraded frame, the predicted turn with the camera where it was: on a view that left the pose
+        free the odometry's moves were off by 3-25 cm frame after frame, and a velocity made of one of them ran
+        the generated corridor's pose off by 9 cm a frame; its turns stay right (walls and floor fix them), and
+        without them the corridor's pan left the pose 12 degrees behind."""
+        if not self.degraded_run:
+            return predicted
+        held = predicted.copy()
+        held[:3, 3] = prev[:3, 3]
+        return held
 
     def track(self, pf: PreparedFrame, view: MapView, trajectory: TrackedTrajectory,
               catch_up: Optional[Callable[[], bool]] = None) -> TrackedPose:
@@ -258,7 +280,7 @@ class TrackingFrontEnd:
             self._note_odometry(pf, init.double().numpy())
             return self._decided(len(trajectory), init, init, 0.0, Quality(1.0, "ok", False), None)
         found = None
-        recheck = self.lost or self.degraded_run >= RECHECK_AFTER
+        recheck = self.lost or self.degraded_run >= RECHECK_AFTER or self.unanchored is not None
         while recheck and self.index_next():
             pass
         if recheck and self.places is not None and len(self.places):
@@ -278,16 +300,49 @@ class TrackingFrontEnd:
             pose = init
         pose = orthonormalize(pose)
         disagrees = self.map_disagrees
+        free = leaves_pose_free(result.covariance, self.cfg.quality)
+        held = self.unanchored
+        confirmed = found is not None and agrees(found.pose, predicted)
+        unanchored = None if free else self._anchoring(pf.index, confirmed)
         evidence = TrackingEvidence(result.depth_fraction, result.inlier_fraction, result.observed_fraction,
                                     result.loss, (torch.linalg.inv(init.double()) @ pose.double()).numpy(),
                                     typical_loss(self.recent_losses), 1.0 if found is not None else gap, self.lost,
                                     found is not None or self._prior_holds(pf), result.covariance,
-                                    None if disagrees is None else disagrees.reason)
+                                    None if disagrees is None else disagrees.reason, unanchored)
         quality = tracking_quality(evidence, self.cfg.quality)
         tracked = self._decided(len(trajectory), pose, init, result.loss, quality,
                                 None if found is None else found.keyframe_id, pf, odometry_frame)
-        tracked.covariance = result.covariance if disagrees is None else widened(result.covariance, disagrees)
+        self.degraded_run = self.degraded_run + 1 if free and quality.degraded else 0
+        if self.degraded_run >= RECHECK_AFTER:
+            self.unanchored, self.unanchored_for = result.covariance, 0
+        covariance = result.covariance
+        if unanchored and covariance is not None:  # at least as uncertain as where the run left it
+            covariance = PoseCovariance(covariance.matrix + held.matrix, covariance.free)
+        tracked.covariance = covariance if disagrees is None else widened(covariance, disagrees)
         return tracked
+
+    def _anchoring(self, index: int, confirmed: bool) -> Optional[str]:
+        """For a frame whose view constrains the pose: why its pose may still be off along a direction that a run
+        of earlier views left free (quality.py: unanchored), None where it is not. A run of RECHECK_AFTER such
+        frames unanchors the pose (track); a relocalization that confirms the motion predicted from the frame
+        before (`confirmed`), or ANCHOR_WAIT frames without one, anchors it again. One relocalization is not
+        enough: on the generated corridor's fast turn back (3 degrees a frame) the odometry moved the next frame
+        10 cm off the relocalized pose, and the tracker settled there."""
+        if self.unanchored is None:
+            return None
+        if confirmed:
+            log.info("frame %d: placed by the keyframes again after a view that left the pose free", index)
+            self.unanchored = None
+            return None
+        self.unanchored_for += 1
+        if self.unanchored_for > ANCHOR_WAIT:
+            log.warning("frame %d: not placed by the keyframes in %d frames after a view that left the pose free; "
+                        "tracking and mapping go on from this pose", index, ANCHOR_WAIT)
+            self.unanchored = None
+            return None
+        x, y, z = self.unanchored.weak_direction
+        return (f"not placed by the keyframes yet since a view left the pose free along ({x:+.2f}, {y:+.2f}, "
+                f"{z:+.2f}) ({self.unanchored_for} frames)")
 
     def dead_reckon(self, pf: PreparedFrame, trajectory: TrackedTrajectory) -> Optional[TrackedPose]:
         """A frame that came before there is a map to track against (a live camera streams from its first frame
@@ -332,9 +387,9 @@ class TrackingFrontEnd:
                      f", relocalized against keyframe {relocalized_from}" if relocalized_from is not None else "",
                      quality.value)
         keyframe = False
-        self.degraded_run = self.degraded_run + 1 if quality.degraded else 0
         if not self.lost:
-            self.good = (self.good + [position])[-2:]
+            # (The move from the last tracked pose to a relocalized one is a correction, not a velocity.)
+            self.good = [position] if relocalized_from is not None else (self.good + [position])[-2:]
             if math.isfinite(loss):
                 self.recent_losses.append(loss)
             if pf is not None:

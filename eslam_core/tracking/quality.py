@@ -24,6 +24,10 @@ A tracked frame gives these pieces of evidence, each turned into a score in [0, 
   `degraded_sigma_m` / `degraded_sigma_deg`, the frame is *degraded*: its quality is capped below `found_above`,
   it makes no keyframe, and the reason names the free direction. A pose constrained in every direction is not
   degraded however wide its covariance (real depth noise: published, and mapped).
+- anchor: after a run of frames whose view left a direction free, the pose may have slid along it, and a
+  constrained view does not undo that: a local tracker started tens of centimetres off settles where the view fits
+  the map well enough (the generated corridor: back on the furniture 21 cm off, every point on the map). Such a
+  pose is *unanchored* (frontend.py) until the keyframes place the camera again: degraded like the run before it.
 - map: whether the map disagrees with itself (map_check.py: a slide mapped earlier). The pose may be right against
   the newer part of the map and wrong against the older: its quality is capped like a degraded frame's, but
   mapping goes on (the view itself is fine).
@@ -59,6 +63,7 @@ class TrackingEvidence:
     anchored: bool = True  # while lost: the tracker started from a relocalization, the odometry or a tracked pose
     covariance: Optional[PoseCovariance] = None  # of the returned pose (None: not measured)
     map_disagrees: Optional[str] = None  # the map disagrees with itself (map_check.py): why
+    unanchored: Optional[str] = None  # the pose may still be off along what earlier views left free: why
 
 
 @dataclass(frozen=True)
@@ -66,7 +71,7 @@ class Quality:
     value: float  # in [0, 1]
     reason: str  # what limits it ("ok" when nothing does)
     lost: bool  # value < lost_below
-    degraded: bool = False  # the view leaves the pose free in some direction (see the module docstring)
+    degraded: bool = False  # the pose may be off along a direction a view left free (this one, or earlier ones)
 
 
 def ramp(x: float, zero_at: float, one_at: float) -> float:
@@ -105,6 +110,8 @@ def tracking_quality(e: TrackingEvidence, cfg: Optional[QualityConfig] = None) -
                               f"loss {ratio:.1f}x the recent frames'")
     if e.map_disagrees:
         scores["map"] = (DEGRADED_QUALITY, e.map_disagrees)
+    if e.unanchored:
+        scores["anchor"] = (DEGRADED_QUALITY, e.unanchored)
     if e.lost_before and not e.anchored:
         scores["start"] = (0.0, "no keyframe matches the view, and no pose was tracked yet to start from")
     if e.lost_before and math.isfinite(e.observed_fraction):
@@ -113,12 +120,19 @@ def tracking_quality(e: TrackingEvidence, cfg: Optional[QualityConfig] = None) -
                             f"pose: not found yet")
     name = min(scores, key=lambda k: scores[k][0])
     value, why = scores[name]
-    degraded = e.covariance is not None and e.covariance.free and not value < cfg.lost_below and (
-        e.covariance.sigma_m > cfg.degraded_sigma_m or e.covariance.sigma_deg > cfg.degraded_sigma_deg)
-    if degraded:
+    free = leaves_pose_free(e.covariance, cfg) and not value < cfg.lost_below
+    if free:
         value, why = min(value, DEGRADED_QUALITY), degenerate_view(e.covariance)
+    degraded = free or bool(e.unanchored) and not value < cfg.lost_below
     lost = value < cfg.lost_below
     return Quality(value, why if value < cfg.found_above else "ok", lost, degraded)
+
+
+def leaves_pose_free(covariance: Optional[PoseCovariance], cfg: QualityConfig) -> bool:
+    """Whether a pose's view leaves a direction free and its covariance exceeds the limits (the constraint score
+    in the module docstring)."""
+    return covariance is not None and covariance.free and (
+        covariance.sigma_m > cfg.degraded_sigma_m or covariance.sigma_deg > cfg.degraded_sigma_deg)
 
 
 # The quality of a degraded pose: above `lost_below` (it is the best estimate there is, and the next frame's
