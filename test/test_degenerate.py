@@ -52,11 +52,10 @@ def _through_the_runtime(path, preset: str, workers: int):
     return truth, error, flagged, keyframe
 
 
-def _flagged_unmapped_and_back(truth, error, flagged, keyframe, stretch, start: int = 0):
-    """From frame `start` on: a pose over FLAG_ABOVE_M off is flagged and not mapped; the view was seen for what it
-    is; the last 10 frames are back under BACK_UNDER_M (and a camera that stood still would fail)."""
+def _flagged_unmapped_and_back(truth, error, flagged, keyframe, stretch):
+    """A pose over FLAG_ABOVE_M off is flagged and not mapped; the view was seen for what it is; the last 10 frames
+    are back under BACK_UNDER_M (and a camera that stood still would fail)."""
     off = error > FLAG_ABOVE_M
-    off[:start] = False
     assert not (off & ~flagged).any(), f"unflagged frames {np.flatnonzero(off & ~flagged)} are " \
         f"{100 * error[off & ~flagged].max():.1f} cm off"
     assert not (off & keyframe).any(), f"frames {np.flatnonzero(off & keyframe)} were mapped"
@@ -67,24 +66,14 @@ def _flagged_unmapped_and_back(truth, error, flagged, keyframe, stretch, start: 
 
 
 @pytest.mark.parametrize("view, preset, workers", [
-    ("two_planes", "fast", 1), ("plane", "live", 1), ("two_planes", "live", 2), ("plane", "fast", 2)])
+    ("two_planes", "fast", 1), ("plane", "live", 1), ("two_planes", "live", 2), ("plane", "fast", 2),
+    ("corridor", "fast", 1), ("corridor", "live", 2)])
 def test_a_view_that_leaves_the_pose_free_is_flagged_never_mapped_and_left_again(scene, view, preset, workers):
+    """On the corridor this holds the pose through the stretch (it drifts with the camera's creep, every frame
+    degraded), flags the poses after it until the keyframes place the camera again, and flags the turn into it,
+    where the odometry moved the camera along the weakly constrained corridor by 1.6 and 4.7 cm."""
     path = scene(view)
     _flagged_unmapped_and_back(*_through_the_runtime(path, preset, workers), stretch_of(path)[0])
-
-
-@pytest.mark.parametrize("preset, workers", [("fast", 1), ("live", 2)])
-def test_the_corridor_is_held_through_its_stretch_and_placed_again_after_it(scene, preset, workers):
-    """The corridor looked along: its pose is held (not run off by a velocity made of the odometry's moves along
-    it), every frame that may have slid says so until the keyframes place the camera again after the turn back,
-    and the camera is then back under 1 cm. Left open (issue 42): the turn into the corridor, where the view still
-    constrains the pose weakly, follows the odometry's wrong moves along it (1.6 and 4.7 cm where the camera moved
-    0.2) for a frame or two, unflagged: those frames are bounded, not flagged."""
-    path = scene("corridor")
-    truth, error, flagged, keyframe = _through_the_runtime(path, preset, workers)
-    onset = int(np.flatnonzero(flagged)[0])
-    assert error[:onset].max() < 0.07, f"{100 * error[:onset].max():.1f} cm off before the view was flagged"
-    _flagged_unmapped_and_back(truth, error, flagged, keyframe, stretch_of(path)[0], start=onset)
 
 
 @pytest.mark.parametrize("view, method", [("two_planes", "sdf"), ("corridor", "sdf"), ("two_planes", "render")])

@@ -184,3 +184,22 @@ def test_an_unanchored_pose_is_degraded_on_a_constrained_view_until_placed_again
     assert not tracking_quality(replace(evidence(), covariance=tight)).degraded
     lost = tracking_quality(replace(evidence(), inlier_fraction=0.05, unanchored=why))
     assert lost.lost and not lost.degraded
+
+
+def test_a_move_along_a_weakly_constrained_direction_is_degraded():
+    """A direction the view constrains only weakly (information.WEAK_BELOW) lets the odometry's guess through: a pose
+    that moved along it by over WEAK_MOVE_M since the last frame is degraded; the same move along a direction that is
+    well constrained, or a small one along the weak one, is not."""
+    from dataclasses import replace
+
+    from eslam_core.tracking.information import WEAK_BELOW, PoseCovariance
+    from eslam_core.tracking.quality import WEAK_MOVE_M
+
+    along_x = np.diag([0.015**2, 0.002**2, 0.002**2] + [1e-6] * 3)  # the weakest axis is x
+    weak, strong = PoseCovariance(along_x, weakest=0.5 * WEAK_BELOW), PoseCovariance(along_x, weakest=2 * WEAK_BELOW)
+    big, small = np.array([3 * WEAK_MOVE_M, 0, 0]), np.array([0.5 * WEAK_MOVE_M, 0, 0])
+    q = tracking_quality(replace(evidence(), covariance=weak, moved=big))
+    assert q.degraded and q.reason.startswith("weakly constrained view") and q.value < QualityConfig().found_above
+    assert not tracking_quality(replace(evidence(), covariance=weak, moved=small)).degraded
+    assert not tracking_quality(replace(evidence(), covariance=strong, moved=big)).degraded
+    assert not tracking_quality(replace(evidence(), covariance=weak, moved=np.array([0, 3 * WEAK_MOVE_M, 0]))).degraded

@@ -40,8 +40,8 @@ from eslam_core.representation.field import SceneField
 from eslam_core.tracking.information import PoseCovariance
 from eslam_core.tracking.map_check import MapCheck, check_map, widened
 from eslam_core.tracking.odometry import RGBDOdometry
-from eslam_core.tracking.quality import (RESIDUAL_WINDOW, Quality, TrackingEvidence, is_lost, leaves_pose_free,
-                                         tracking_quality, typical_loss)
+from eslam_core.tracking.quality import (RESIDUAL_WINDOW, Quality, TrackingEvidence, is_lost, tracking_quality,
+                                         typical_loss, weak_view)
 from eslam_core.tracking.render_tracker import Tracker, constant_velocity, time_ratio
 from eslam_core.tracking.result import TrackingResult
 from eslam_core.tracking.sdf_tracker import SDFTracker
@@ -60,6 +60,11 @@ RECHECK_AFTER = 5
 # tracking goes on from it as it is: a camera that walked on into new space is never placed, and must map again.
 # The map check (map_check.py) still says so later if that pose was off.
 ANCHOR_WAIT = 90
+# Relocalizations that confirm the predicted motion before an unanchored pose is anchored again. One is not enough:
+# on the generated corridor's turn back (3 degrees a frame) the odometry moved the two frames after a confirmed one
+# 10 cm off, and the tracker settled there, every direction constrained; while unanchored, each frame starts from
+# its relocalization where there is one.
+ANCHOR_CONFIRMATIONS = 3
 AGREE_M, AGREE_DEG = 0.03, 3.0  # two poses of a frame this close are the same start for a tracker
 
 
@@ -125,6 +130,7 @@ class TrackingFrontEnd:
         self.degraded_run = 0  # frames in a row whose view left the pose free (quality.py)
         self.unanchored: Optional[PoseCovariance] = None  # after a long such run: its last frame's covariance
         self.unanchored_for = 0  # frames since the run ended
+        self.confirmations = 0  # relocalizations since then that confirmed the predicted motion
         self.unindexed: list = []  # keyframes not in `places` yet (see remember)
         self._loaded_unindexed = False
         self.fallback_pose = np.eye(4)
@@ -300,7 +306,8 @@ class TrackingFrontEnd:
             pose = init
         pose = orthonormalize(pose)
         disagrees = self.map_disagrees
-        free = leaves_pose_free(result.covariance, self.cfg.quality)
+        moved = pose[:3, 3].double().numpy() - trajectory.pose(self.good[-1])[:3, 3] if self.good else None
+        free = weak_view(result.covariance, moved, self.cfg.quality) is not None
         held = self.unanchored
         confirmed = found is not None and agrees(found.pose, predicted)
         unanchored = None if free else self._anchoring(pf.index, confirmed)
@@ -308,13 +315,13 @@ class TrackingFrontEnd:
                                     result.loss, (torch.linalg.inv(init.double()) @ pose.double()).numpy(),
                                     typical_loss(self.recent_losses), 1.0 if found is not None else gap, self.lost,
                                     found is not None or self._prior_holds(pf), result.covariance,
-                                    None if disagrees is None else disagrees.reason, unanchored)
+                                    None if disagrees is None else disagrees.reason, unanchored, moved)
         quality = tracking_quality(evidence, self.cfg.quality)
         tracked = self._decided(len(trajectory), pose, init, result.loss, quality,
                                 None if found is None else found.keyframe_id, pf, odometry_frame)
         self.degraded_run = self.degraded_run + 1 if free and quality.degraded else 0
         if self.degraded_run >= RECHECK_AFTER:
-            self.unanchored, self.unanchored_for = result.covariance, 0
+            self.unanchored, self.unanchored_for, self.confirmations = result.covariance, 0, 0
         covariance = result.covariance
         if unanchored and covariance is not None:  # at least as uncertain as where the run left it
             covariance = PoseCovariance(covariance.matrix + held.matrix, covariance.free)
@@ -324,13 +331,12 @@ class TrackingFrontEnd:
     def _anchoring(self, index: int, confirmed: bool) -> Optional[str]:
         """For a frame whose view constrains the pose: why its pose may still be off along a direction that a run
         of earlier views left free (quality.py: unanchored), None where it is not. A run of RECHECK_AFTER such
-        frames unanchors the pose (track); a relocalization that confirms the motion predicted from the frame
-        before (`confirmed`), or ANCHOR_WAIT frames without one, anchors it again. One relocalization is not
-        enough: on the generated corridor's fast turn back (3 degrees a frame) the odometry moved the next frame
-        10 cm off the relocalized pose, and the tracker settled there."""
+        frames unanchors the pose (track); ANCHOR_CONFIRMATIONS relocalizations that confirm the motion predicted
+        from the frame before (`confirmed`), or ANCHOR_WAIT frames, anchor it again."""
         if self.unanchored is None:
             return None
-        if confirmed:
+        self.confirmations += confirmed
+        if self.confirmations >= ANCHOR_CONFIRMATIONS:
             log.info("frame %d: placed by the keyframes again after a view that left the pose free", index)
             self.unanchored = None
             return None

@@ -39,6 +39,13 @@ EFFECTIVE_POINTS = 12.0
 # only a wall, two planes or a corridor are in view (datasets/degenerate.py). At 20, single frames at the start of
 # such a view were 2.1-2.7 cm off and not flagged.
 UNCONSTRAINED_BELOW = 40.0
+# A direction constrained, but weakly: information per residual below this. The odometry sees the same view, and
+# its move along such a direction is no better than a guess that the tracker, finding the cost nearly flat there,
+# keeps (quality.py: a pose that moved along it is degraded). On the generated corridor's turn the information fell
+# 88 -> 50 -> 45 over two frames while the odometry moved the camera 1.6 and 4.7 cm along the corridor (it crept
+# 0.2 cm), and the tracker kept both moves. Real views lie above it: the weakest direction's 1st percentile was 96
+# on ICL office kt0 and 105 on 7-Scenes RedKitchen (`fast`, lock-step; one 7-Scenes frame of 400 below 80).
+WEAK_BELOW = 80.0
 # One frame's plausible motion (standard deviation, metres; a turn as the motion of a point at the median depth):
 # the prior that bounds a direction nothing constrains.
 PRIOR_SIGMA_M = 0.10
@@ -50,6 +57,7 @@ class PoseCovariance:
 
     matrix: np.ndarray  # (6, 6) world frame, x y z roll pitch yaw (metres, radians)
     free: bool = False  # some direction is not constrained by the frame (its variance is the prior's)
+    weakest: float = float("inf")  # information per residual along the least constrained direction
 
     @property
     def sigma_m(self) -> float:
@@ -119,7 +127,7 @@ def pose_covariance(H: np.ndarray, chi2: float, n: int, t: np.ndarray, depth: fl
     # (v_c, w) = D s: the camera's move and its turn, which is what REP 103's pose covariance is of.
     D = _turn_scale(depth)
     covariance = D @ (vectors * variances) @ vectors.T @ D
-    return PoseCovariance(0.5 * (covariance + covariance.T), not constrained.all())
+    return PoseCovariance(0.5 * (covariance + covariance.T), not constrained.all(), float(information[0]))
 
 
 def covariance_at(covariance: np.ndarray, lever: np.ndarray) -> np.ndarray:

@@ -175,7 +175,7 @@ class Tracker:
         # Not a reason to degrade a frame (quality.py): per whitened residual the information is low wherever the
         # map is still rough (after 20 warm-up iterations on the room no direction passed the threshold, and no
         # keyframe was made), and on the degenerate stretch that slid the SDF tracker this tracker held (1.3 cm).
-        return dataclasses.replace(covariance, free=False)
+        return dataclasses.replace(covariance, free=False, weakest=float("inf"))
 
     def _in_observed_space(self, candidates: torch.Tensor, depth: torch.Tensor, pose: torch.Tensor,
                            observed: ObservedSurfaces) -> torch.Tensor:
