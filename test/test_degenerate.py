@@ -116,13 +116,15 @@ def test_the_covariance_is_the_size_of_the_errors_on_the_room(tmp_path):
 
 def test_a_slide_already_in_the_map_is_caught_when_the_camera_returns(scene, monkeypatch):
     """With the safeguards against degenerate views off (Gauss-Newton steps along every direction, no frame
-    degraded), `fast` lock-step slides about half a metre on the two planes and maps the slide. Back on the
+    degraded, weakly constrained or not), `fast` lock-step slides about half a metre on the two planes and maps the slide. Back on the
     furniture, the first keyframes' features place the newest keyframes where they are: the map disagrees with
     itself by about the slide, and from then on the poses say so (quality capped, covariance widened by it), the
     health too."""
     import eslam_core.tracking.information as information
+    import eslam_core.tracking.quality as quality
 
     monkeypatch.setattr(information, "UNCONSTRAINED_BELOW", 0.0)
+    monkeypatch.setattr(quality, "WEAK_BELOW", 0.0)
     path = scene("two_planes")
     data = open_dataset(path, "tum")
     cfg = load_config("fast", {"quality": {"degraded_sigma_m": 100.0, "degraded_sigma_deg": 1000.0}})
@@ -151,8 +153,10 @@ def test_the_runtime_reports_a_map_that_disagrees_with_itself(scene, monkeypatch
     """The same slide through the runtime (in this process, where the safeguards are off): its health and the
     poses report it."""
     import eslam_core.tracking.information as information
+    import eslam_core.tracking.quality as quality
 
     monkeypatch.setattr(information, "UNCONSTRAINED_BELOW", 0.0)
+    monkeypatch.setattr(quality, "WEAK_BELOW", 0.0)
     path = scene("two_planes")
     data = open_dataset(path, "tum")
     cfg = load_config("fast", {"quality": {"degraded_sigma_m": 100.0, "degraded_sigma_deg": 1000.0}})

@@ -188,7 +188,7 @@ def test_an_unanchored_pose_is_degraded_on_a_constrained_view_until_placed_again
 
 def test_a_move_along_a_weakly_constrained_direction_is_degraded():
     """A direction the view constrains only weakly (information.WEAK_BELOW) lets the odometry's guess through: a pose
-    that moved along it by over WEAK_MOVE_M since the last frame is degraded; the same move along a direction that is
+    that moved along it by over WEAK_MOVE_M beyond the constant velocity is degraded; the same move along a direction that is
     well constrained, or a small one along the weak one, is not."""
     from dataclasses import replace
 
@@ -198,8 +198,8 @@ def test_a_move_along_a_weakly_constrained_direction_is_degraded():
     along_x = np.diag([0.015**2, 0.002**2, 0.002**2] + [1e-6] * 3)  # the weakest axis is x
     weak, strong = PoseCovariance(along_x, weakest=0.5 * WEAK_BELOW), PoseCovariance(along_x, weakest=2 * WEAK_BELOW)
     big, small = np.array([3 * WEAK_MOVE_M, 0, 0]), np.array([0.5 * WEAK_MOVE_M, 0, 0])
-    q = tracking_quality(replace(evidence(), covariance=weak, moved=big))
+    q = tracking_quality(replace(evidence(), covariance=weak, unexplained=big))
     assert q.degraded and q.reason.startswith("weakly constrained view") and q.value < QualityConfig().found_above
-    assert not tracking_quality(replace(evidence(), covariance=weak, moved=small)).degraded
-    assert not tracking_quality(replace(evidence(), covariance=strong, moved=big)).degraded
-    assert not tracking_quality(replace(evidence(), covariance=weak, moved=np.array([0, 3 * WEAK_MOVE_M, 0]))).degraded
+    assert not tracking_quality(replace(evidence(), covariance=weak, unexplained=small)).degraded
+    assert not tracking_quality(replace(evidence(), covariance=strong, unexplained=big)).degraded
+    assert not tracking_quality(replace(evidence(), covariance=weak, unexplained=np.array([0, 3 * WEAK_MOVE_M, 0]))).degraded

@@ -254,13 +254,21 @@ class TrackingFrontEnd:
             motion = self.odometry.motion(odometry_frame)
             if motion is not None:
                 return self._held(prev @ motion, prev), gap, None if self.degraded_run else prev
-        # After a long pause (over MAX_EXTRAPOLATION frame gaps) the velocity says nothing: predict no motion. A
-        # camera lost for a few frames keeps the velocity of its last tracked ones: they are the frames before the
-        # loss, and a camera that walked on while lost (2.5 cm a frame on the synthetic long room) was otherwise
-        # refined from where it was last tracked, 10 cm behind, and on a wall that lets the pose slide, found there.
-        if len(self.good) < 2 or not self.cfg.tracking.constant_velocity or gap > MAX_EXTRAPOLATION:
+        if not self.good:
             return prev, gap, None
-        return self._held(constant_velocity(trajectory.pose(self.good[-2]), prev, gap), prev), gap, None
+        return self._held(self._velocity_prediction(trajectory, gap), prev), gap, None
+
+    def _velocity_prediction(self, trajectory: TrackedTrajectory, gap: float) -> np.ndarray:
+        """The constant-velocity pose from the last well-tracked frames (at least one), `gap` frame gaps on.
+
+        After a long pause (over MAX_EXTRAPOLATION frame gaps) the velocity says nothing: predict no motion. A
+        camera lost for a few frames keeps the velocity of its last tracked ones: they are the frames before the
+        loss, and a camera that walked on while lost (2.5 cm a frame on the synthetic long room) was otherwise
+        refined from where it was last tracked, 10 cm behind, and on a wall that lets the pose slide, found there."""
+        prev = trajectory.pose(self.good[-1])
+        if len(self.good) < 2 or not self.cfg.tracking.constant_velocity or gap > MAX_EXTRAPOLATION:
+            return prev
+        return constant_velocity(trajectory.pose(self.good[-2]), prev, gap)
 
     def _held(self, predicted: np.ndarray, prev: np.ndarray) -> np.ndarray:
         """After a degraded frame, the predicted turn with the camera where it was: on a view that left the pose
@@ -306,8 +314,10 @@ class TrackingFrontEnd:
             pose = init
         pose = orthonormalize(pose)
         disagrees = self.map_disagrees
-        moved = pose[:3, 3].double().numpy() - trajectory.pose(self.good[-1])[:3, 3] if self.good else None
-        free = weak_view(result.covariance, moved, self.cfg.quality) is not None
+        unexplained = None  # the pose's move beyond the constant velocity's (quality.py, weak_view)
+        if self.good and found is None:
+            unexplained = pose[:3, 3].double().numpy() - self._velocity_prediction(trajectory, gap)[:3, 3]
+        free = weak_view(result.covariance, unexplained, self.cfg.quality) is not None
         held = self.unanchored
         confirmed = found is not None and agrees(found.pose, predicted)
         unanchored = None if free else self._anchoring(pf.index, confirmed)
@@ -315,7 +325,7 @@ class TrackingFrontEnd:
                                     result.loss, (torch.linalg.inv(init.double()) @ pose.double()).numpy(),
                                     typical_loss(self.recent_losses), 1.0 if found is not None else gap, self.lost,
                                     found is not None or self._prior_holds(pf), result.covariance,
-                                    None if disagrees is None else disagrees.reason, unanchored, moved)
+                                    None if disagrees is None else disagrees.reason, unanchored, unexplained)
         quality = tracking_quality(evidence, self.cfg.quality)
         tracked = self._decided(len(trajectory), pose, init, result.loss, quality,
                                 None if found is None else found.keyframe_id, pf, odometry_frame)
