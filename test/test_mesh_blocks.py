@@ -281,7 +281,13 @@ def test_mesh_process_reports_changes_under_its_budget_and_forgets_on_reset():
         assert wait(m).epoch == m.epoch - 1
         m.submit(snapshot_of([BALL]))
         fresh = wait(m)
-        assert fresh.epoch == m.epoch and fresh.changed and not fresh.error
+        assert fresh.epoch == m.epoch and not fresh.error
+        # (Under load a job's 50 ms may mesh only blocks without surface: CI once got one such block, 85 pending.)
+        changed = dict(fresh.changed)
+        while not changed and m.pending:
+            m.submit(None)
+            changed.update(wait(m).changed)
+        assert changed
     finally:
         m.close()
     assert not m.running
