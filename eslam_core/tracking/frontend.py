@@ -127,7 +127,7 @@ class TrackingFrontEnd:
         self.good: list[int] = []  # trajectory positions of the last well-tracked frames (the prediction's)
         self.recent_losses: deque = deque(maxlen=RESIDUAL_WINDOW)  # well-tracked frames' (the residual's)
         self.since_keyframe = 0
-        self.degraded_run = 0  # frames in a row whose view left the pose free (quality.py)
+        self.degraded_run = 0  # frames in a row whose view did not determine the pose (quality.weak_view)
         self.unanchored: Optional[PoseCovariance] = None  # after a long such run: its last frame's covariance
         self.unanchored_for = 0  # frames since the run ended
         self.confirmations = 0  # relocalizations since then that confirmed the predicted motion
@@ -317,10 +317,10 @@ class TrackingFrontEnd:
         unexplained = None  # the pose's move beyond the constant velocity's (quality.py, weak_view)
         if self.good and found is None:
             unexplained = pose[:3, 3].double().numpy() - self._velocity_prediction(trajectory, gap)[:3, 3]
-        free = weak_view(result.covariance, unexplained, self.cfg.quality) is not None
+        weak = weak_view(result.covariance, unexplained, self.cfg.quality) is not None
         held = self.unanchored
         confirmed = found is not None and agrees(found.pose, predicted)
-        unanchored = None if free else self._anchoring(pf.index, confirmed)
+        unanchored = None if weak else self._anchoring(pf.index, confirmed)
         evidence = TrackingEvidence(result.depth_fraction, result.inlier_fraction, result.observed_fraction,
                                     result.loss, (torch.linalg.inv(init.double()) @ pose.double()).numpy(),
                                     typical_loss(self.recent_losses), 1.0 if found is not None else gap, self.lost,
@@ -329,7 +329,7 @@ class TrackingFrontEnd:
         quality = tracking_quality(evidence, self.cfg.quality)
         tracked = self._decided(len(trajectory), pose, init, result.loss, quality,
                                 None if found is None else found.keyframe_id, pf, odometry_frame)
-        self.degraded_run = self.degraded_run + 1 if free and quality.degraded else 0
+        self.degraded_run = self.degraded_run + 1 if weak and quality.degraded else 0
         if self.degraded_run >= RECHECK_AFTER:
             self.unanchored, self.unanchored_for, self.confirmations = result.covariance, 0, 0
         covariance = result.covariance
