@@ -318,7 +318,6 @@ class TrackingFrontEnd:
         if self.good and found is None:
             unexplained = pose[:3, 3].double().numpy() - self._velocity_prediction(trajectory, gap)[:3, 3]
         weak = weak_view(result.covariance, unexplained, self.cfg.quality) is not None
-        held = self.unanchored
         confirmed = found is not None and agrees(found.pose, predicted)
         unanchored = None if weak else self._anchoring(pf.index, confirmed)
         evidence = TrackingEvidence(result.depth_fraction, result.inlier_fraction, result.observed_fraction,
@@ -334,7 +333,7 @@ class TrackingFrontEnd:
             self.unanchored, self.unanchored_for, self.confirmations = result.covariance, 0, 0
         covariance = result.covariance
         if unanchored and covariance is not None:  # at least as uncertain as where the run left it
-            covariance = PoseCovariance(covariance.matrix + held.matrix, covariance.free)
+            covariance = PoseCovariance(covariance.matrix + self.unanchored.matrix, covariance.free)
         tracked.covariance = covariance if disagrees is None else widened(covariance, disagrees)
         return tracked
 

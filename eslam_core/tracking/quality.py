@@ -126,7 +126,7 @@ def tracking_quality(e: TrackingEvidence, cfg: Optional[QualityConfig] = None) -
     weak = None if value < cfg.lost_below else weak_view(e.covariance, e.unexplained, cfg)
     if weak:
         value, why = min(value, DEGRADED_QUALITY), weak
-    degraded = bool(weak) or bool(e.unanchored) and not value < cfg.lost_below
+    degraded = bool(weak or e.unanchored) and not value < cfg.lost_below
     lost = value < cfg.lost_below
     return Quality(value, why if value < cfg.found_above else "ok", lost, degraded)
 
