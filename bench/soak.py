@@ -72,6 +72,30 @@ def process_counters(pid: int) -> dict[str, float]:
     return out
 
 
+def machine_counters() -> dict[str, float]:
+    """The machine's CPU time stolen by the hypervisor (seconds, all cores; /proc/stat): a virtual machine whose
+    host takes cycles away runs every process slower without any of them doing more work."""
+    try:
+        fields = Path("/proc/stat").read_text().splitlines()[0].split()
+        return {"steal_s": int(fields[8]) / os.sysconf("SC_CLK_TCK")}
+    except (OSError, IndexError, ValueError):
+        return {}
+
+
+PROBE_EVERY = 150  # frames (5 s of input): 120 probes in ten minutes, 0.2 % of a core
+
+
+def speed_probe_ms() -> float:
+    """CPU time of a fixed piece of work (numpy and plain Python, about 10 ms): if it costs more late in the run,
+    the machine got slower, not the workers' work larger."""
+    a = np.arange(40_000, dtype=np.float64).reshape(200, 200) / 40_000
+    t = time.thread_time()
+    for _ in range(10):
+        a = np.tanh(a @ a.T / 200)
+    sum(i * i for i in range(50_000))
+    return (time.thread_time() - t) * 1000
+
+
 def rss_mb(pid: int) -> float:
     return memory_mb(pid)["rss"]
 
@@ -96,7 +120,8 @@ def interval_rows(intervals: list, latency: np.ndarray, i: int, baseline: dict) 
             "latency_ms_median": float(np.median(lat) * 1000) if len(lat) else float("nan"),
             "latency_ms_p90": float(np.percentile(lat, 90) * 1000) if len(lat) else float("nan"),
             "stages": {row["stage"]: row["ms"] for row in stage_profile(delta)},
-            "processes_per_frame": processes}
+            "processes_per_frame": processes,
+            "speed_probe_ms": float(np.median(end["probe_ms"])) if end.get("probe_ms") else float("nan")}
 
 
 def print_intervals(first: dict, last: dict, seconds: float) -> None:
@@ -108,11 +133,16 @@ def print_intervals(first: dict, last: dict, seconds: float) -> None:
         print(f"  {stage:<52} {a:8.2f} {b:8.2f}  {ratio:6.2f}")
     for key, label in (("latency_ms_median", "latency, median (ms)"), ("latency_ms_p90", "latency, p90 (ms)")):
         print(f"  {label:<52} {first[key]:8.1f} {last[key]:8.1f}  {last[key] / first[key]:6.2f}")
+    print(f"  {'speed probe: fixed work, CPU ms (the machine)':<52} {first['speed_probe_ms']:8.2f} "
+          f"{last['speed_probe_ms']:8.2f}  {last['speed_probe_ms'] / first['speed_probe_ms']:6.2f}")
     print(f"  {'poses / frames played':<52} {first['poses'] / max(first['frames'], 1):8.3f} "
           f"{last['poses'] / max(last['frames'], 1):8.3f}")
     for name, counters in first["processes_per_frame"].items():
         for key, label, scale in (("cpu_s", "CPU ms a frame", 1000), ("minor_faults", "page faults a frame", 1),
-                                  ("nonvoluntary", "cores taken away a frame", 1), ("voluntary", "waits a frame", 1)):
+                                  ("nonvoluntary", "cores taken away a frame", 1), ("voluntary", "waits a frame", 1),
+                                  ("steal_s", "CPU ms stolen by the host a frame", 1000)):
+            if key not in counters:
+                continue
             a = counters.get(key, float("nan")) * scale
             b = last["processes_per_frame"][name].get(key, float("nan")) * scale
             print(f"  {name + ': ' + label:<52} {a:8.2f} {b:8.2f}  {b / a if a > 0 else float('nan'):6.2f}")
@@ -151,7 +181,12 @@ def main() -> int:
     rt = make_runtime(cfg, ds.intrinsics, workers=2, policy=args.policy)
     rt.start()
     pids = {"parent": os.getpid(), **rt.resources()["pids"]}
-    baseline = {"frames": 0, "counters": {}, "processes": {name: process_counters(pid) for name, pid in pids.items()}}
+
+    def counters() -> dict:
+        return {**{name: process_counters(pid) for name, pid in pids.items()}, "machine": machine_counters()}
+
+    baseline = {"frames": 0, "counters": {}, "processes": counters()}
+    probes: list = []  # the speed probe's figures since the last interval closed
     samples, lap_ends = [], []
     # Per frame played, in arrays (this process's memory is measured too): the pose as tracked, the latency (NaN:
     # no pose), the data set's frame.
@@ -188,8 +223,9 @@ def main() -> int:
             posed[u.index], latency[u.index] = u.pose, u.latency_s
 
     def close_interval() -> None:
-        intervals.append({"frames": k, "counters": rt.worker_figures(),
-                          "processes": {name: process_counters(pid) for name, pid in pids.items()}})
+        intervals.append({"frames": k, "counters": rt.worker_figures(), "processes": counters(),
+                          "probe_ms": probes[:]})
+        probes.clear()
         first = interval_rows(intervals, latency, 0, baseline)
         last = interval_rows(intervals, latency, len(intervals) - 1, baseline)
         print(f"interval {len(intervals)} (to frame {k}): {last['latency_ms_median']:.1f} ms median latency, "
@@ -224,6 +260,8 @@ def main() -> int:
             source[k] = i
             k += 1
             collect()
+            if k % PROBE_EVERY == 0:
+                probes.append(speed_probe_ms())
             if time.monotonic() - last_report >= args.every:
                 last_report = time.monotonic()
                 report("")
