@@ -33,6 +33,7 @@ setup(
         "matplotlib",
         "rosbags",
         "opencv-python-headless>=5.1",  # relocalization (ORB, PnP RANSAC); cv2.Odometry (OpenCV 5) for tracking
+        "gtsam>=4.2",  # the pose graph over submaps (submaps/pose_graph.py: GNC for loop edges)
     ],
     extras_require={
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],

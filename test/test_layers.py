@@ -19,6 +19,7 @@ LAYERS = [
     ("datasets", ["datasets"]),
     ("mapping", ["mapping"]),
     ("tracking", ["tracking"]),
+    ("submaps", ["submaps"]),
     ("lock-step system", ["slam"]),
     ("outputs", ["outputs"]),
     ("runtime", ["runtime"]),

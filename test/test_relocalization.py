@@ -212,3 +212,33 @@ def test_the_front_end_indexes_keyframes_later_and_before_it_relocalizes(room):
     found = fe.places.relocalize(rgb, depth, INTR)
     assert found is not None and found.keyframe_id == len(KEYFRAMES) - 2  # the keyframe's number
     assert pose_error(found.pose, poses[KEYFRAMES[-2] + 5])[0] < 0.05  # at the refined keyframe poses
+
+
+def test_a_keyframe_is_placed_one_candidate_per_step_as_at_once(room):
+    """The map check's placement in steps (for a live tracker's idle slots): one candidate verified per step, the
+    same place as done at once; a candidate forgotten between two steps is skipped, not an error."""
+    _, poses, db = room
+    cfg = RelocalizationConfig(enough_inliers=10**6)  # verify every candidate
+    steps_db = KeyframeDatabase.from_state_dict(db.state_dict())  # (the module's database stays as it is)
+    steps_db.cfg = cfg
+    number = KEYFRAMES[-1]
+    at_once = steps_db.place(number, INTR, number)
+    steps, taken = steps_db.placing(number, INTR, number), 0
+    while True:
+        try:
+            next(steps)
+            taken += 1
+        except StopIteration as done:
+            stepped = done.value
+            break
+    assert taken >= 2  # several candidates, each its own step
+    assert at_once is not None and stepped is not None and stepped.keyframe_id == at_once.keyframe_id
+    assert np.allclose(stepped.pose, at_once.pose)
+    assert pose_error(stepped.pose, poses[number])[0] < 0.05
+
+    steps = steps_db.placing(number, INTR, number)
+    next(steps)
+    for keyframe_id in [k for k in db.entries if k != number]:  # every candidate dropped meanwhile
+        steps_db.remove(keyframe_id)
+    for _ in steps:
+        pass

@@ -400,7 +400,7 @@ class TrackerWorker:
             if self.ch.control.stopping or self.ch.ring.drained():
                 self._finish()
                 continue
-            waiting = self.session.unindexed  # keyframes to index for relocalization while idle
+            waiting = self.session.idle_work  # keyframes to index for relocalization, map checks
             frame, skipped = self.ch.ring.take(self.live, 0.0 if waiting else POLL_S)
             if skipped:
                 self.ch.board.add(Counter.DROPPED_BY_TRACKER, skipped)

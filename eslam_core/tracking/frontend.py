@@ -138,6 +138,7 @@ class TrackingFrontEnd:
         if cfg.odometry.width > 0 and self.tracker is not None:
             self.odometry = RGBDOdometry(intr, cfg.odometry.width, cfg.camera.max_depth, cfg.odometry.iterations)
         self.map_check: Optional[MapCheck] = None  # the newest keyframe placed by older ones (map_check.py)
+        self._checking = None  # the map check in progress (a generator: index_next takes its steps)
         self.places = None  # the keyframes for relocalization (a KeyframeDatabase), when enabled
         if cfg.relocalization.enabled and self.tracker is not None:
             from eslam_core.tracking.relocalization import KeyframeDatabase  # (OpenCV: loaded only when used)
@@ -163,21 +164,34 @@ class TrackingFrontEnd:
                 self.index_next()
 
     def index_next(self) -> bool:
-        """Index the oldest keyframe waiting for it; False if none waits."""
+        """One unit of the idle work (a few to 15 milliseconds): index the oldest keyframe waiting for it, or take
+        one step of the newest keyframe's map check (a candidate verified); False if nothing waits."""
+        if self._checking is not None:
+            try:
+                next(self._checking)
+            except StopIteration as done:
+                self._checking = None
+                if done.value is not None:
+                    if done.value.disagrees:
+                        log.warning("%s", done.value.reason)
+                    self.map_check = done.value
+            return True
         if self.places is None or not self.unindexed:
             return False
         kf = self.unindexed.pop(0)
         self.places.add(kf.number, kf.rgb.numpy(), kf.depth_image().numpy(), kf.pose, self.intr)
         if not self._loaded_unindexed:  # (a loaded map's keyframes were checked when they were made)
-            check = check_map(self.places, kf.number, kf.pose.double().numpy(), self.intr, self.cfg.relocalization)
-            if check is not None:
-                if check.disagrees:
-                    log.warning("%s", check.reason)
-                self.map_check = check
+            self._checking = check_map(self.places, kf.number, kf.pose.double().numpy(), self.intr,
+                                       self.cfg.relocalization)
         if not self.unindexed and self._loaded_unindexed:  # a loaded map: its words, before the first query
             self._loaded_unindexed = False
             self.places.build_vocabulary()
         return True
+
+    @property
+    def idle_work(self) -> bool:
+        """Keyframes wait for indexing, or a map check for its next step (`index_next`)."""
+        return bool(self.unindexed) or self._checking is not None
 
     @property
     def map_disagrees(self) -> Optional[MapCheck]:

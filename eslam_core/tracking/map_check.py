@@ -15,7 +15,7 @@ by the disagreement, the health and status report it. Moving the later part of t
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Generator, Optional
 
 import numpy as np
 
@@ -40,12 +40,13 @@ class MapCheck:
 
 
 def check_map(places, number: int, tracked: np.ndarray, intr: Intrinsics,
-              cfg: RelocalizationConfig) -> Optional[MapCheck]:
+              cfg: RelocalizationConfig) -> Generator[None, None, Optional[MapCheck]]:
     """Keyframe `number` (indexed in `places`, a KeyframeDatabase; `tracked` its 4x4 pose) placed by the features
-    of the keyframes at least `cfg.map_check_gap` older; None where the check is off or none of them explains it."""
+    of the keyframes at least `cfg.map_check_gap` older; None where the check is off or none of them explains it.
+    Done one candidate keyframe per step (KeyframeDatabase.placing): the generator returns the check."""
     if cfg.map_check_gap <= 0 or number < cfg.map_check_gap:
         return None
-    found = places.place(number, intr, number - cfg.map_check_gap + 1)
+    found = yield from places.placing(number, intr, number - cfg.map_check_gap + 1)
     if found is None:
         return None
     metres = float(np.linalg.norm(found.pose[:3, 3] - tracked[:3, 3]))

@@ -93,9 +93,9 @@ class TrackingSession:
         self.frontend.remember(kf)
 
     @property
-    def unindexed(self) -> bool:
-        """New keyframes wait for their relocalization features (`index_next` them while idle)."""
-        return bool(self.frontend.unindexed)
+    def idle_work(self) -> bool:
+        """New keyframes wait for their relocalization features or their map check (`index_next` while idle)."""
+        return self.frontend.idle_work
 
     def index_next(self) -> bool:
         return self.frontend.index_next()
