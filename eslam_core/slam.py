@@ -59,6 +59,7 @@ class SLAM:
         n = len(self.trajectory)
         if not self.map.started:
             tracked, kf = self.tracking.first(pf)
+            self.tracking.remember(kf)
             self.map.start(tracked.extent)
             self.map.add_keyframe(kf)
             step = self.map.warm_up(self.after_mapping_iteration)

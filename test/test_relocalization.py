@@ -191,7 +191,8 @@ def test_the_front_end_indexes_keyframes_later_and_before_it_relocalizes(room):
     from eslam_core.config import load_config
     from eslam_core.frames import pixel_directions_table
     from eslam_core.mapping.keyframes import Keyframe
-    from eslam_core.tracking.frontend import MAX_UNINDEXED, TrackingFrontEnd
+    from eslam_core.tracking.frontend import TrackingFrontEnd
+    from eslam_core.tracking.places import MAX_UNINDEXED
 
     scene, poses, _ = room
     fe = TrackingFrontEnd(load_config("demo"), INTR, pixel_directions_table(INTR))
@@ -201,15 +202,15 @@ def test_the_front_end_indexes_keyframes_later_and_before_it_relocalizes(room):
         kfs.append(Keyframe.from_tensors(i, 0.0, torch.from_numpy(rgb) / 255.0, torch.from_numpy(depth),
                                          torch.from_numpy(depth > 0), torch.eye(4), number))
         fe.remember(kfs[-1])
-        assert len(fe.unindexed) <= MAX_UNINDEXED
-    assert len(fe.places) + len(fe.unindexed) == len(KEYFRAMES) and fe.unindexed
+        assert len(fe.places.unindexed) <= MAX_UNINDEXED
+    assert len(fe.places) + len(fe.places.unindexed) == len(KEYFRAMES) and fe.places.unindexed
     fe.forget([kfs[-1].number])  # dropped by the keyframe store before it was indexed: never indexed
     fe.refine({kf.number: torch.from_numpy(poses[kf.frame_index]).float() for kf in kfs})
     while fe.index_next():
         pass
-    assert not fe.unindexed and len(fe.places) == len(KEYFRAMES) - 1
+    assert not fe.places.unindexed and len(fe.places) == len(KEYFRAMES) - 1
     rgb, depth = render(scene, poses[KEYFRAMES[-2] + 5], KEYFRAMES[-2] + 5)
-    found = fe.places.relocalize(rgb, depth, INTR)
+    found = fe.places.relocalize(rgb, depth)
     assert found is not None and found.keyframe_id == len(KEYFRAMES) - 2  # the keyframe's number
     assert pose_error(found.pose, poses[KEYFRAMES[-2] + 5])[0] < 0.05  # at the refined keyframe poses
 

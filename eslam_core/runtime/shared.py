@@ -311,10 +311,11 @@ class Counter(IntEnum):
     MAP_ADD_S = 32  # mapper: keyframes added to the store (the map's growth test and growth, observed space)
     MAP_STEP_S = 33  # mapper: mapping steps (publications in the middle of a step included)
     MAP_MEASURE_S = 34  # mapper: memory and the consistency score after each step
-    TRACK_INDEX_S = 35  # tracker: keyframes indexed for relocalization (while it waits for frames, if it does)
+    TRACK_INDEX_S = 35  # tracker: a loaded map's keyframes indexed for relocalization (while it waits for frames)
     TRACK_WAIT_S = 36  # tracker: waiting for the mapper (the first map; offline, runtime.max_keyframe_lag)
-    MAP_CHECK = 37  # tracker: the newest map check (tracking/map_check.py): 0 none yet, 1 agrees, 2 disagrees
-    MAP_CHECK_CM = 38  # tracker: its distance between the tracked and the placed keyframe, cm
+    MAP_CHECK = 37  # mapper: the newest map check (tracking/map_check.py): 0 none yet, 1 agrees, 2 disagrees
+    MAP_CHECK_CM = 38  # mapper: its distance between the tracked and the placed keyframe, cm
+    MAP_INDEX_S = 39  # mapper: keyframes indexed for relocalization and checked against the map (places.py)
 
 
 # The stage counters, each with the events it is divided by: (stage, seconds, events, events not timed). The
@@ -324,13 +325,14 @@ STAGES = (
     ("tracker: frame preparation", Counter.TRACK_PREPARE_S, Counter.TRACKED, 0),
     ("tracker: front end (tracking)", Counter.TRACK_ALIGN_S, Counter.TRACKED, 0),
     ("tracker: new keyframe (hand-over)", Counter.TRACK_KEYFRAME_S, Counter.KEYFRAMES, 1),
-    ("tracker: keyframe indexed (relocalization)", Counter.TRACK_INDEX_S, Counter.KEYFRAMES, 1),
+    ("tracker: a loaded map's keyframes indexed", Counter.TRACK_INDEX_S, Counter.KEYFRAMES, 1),
     ("tracker: pose to the parent", Counter.TRACK_REPORT_S, Counter.TRACKED, 0),
     ("tracker: waiting for the mapper", Counter.TRACK_WAIT_S, Counter.TRACKED, 0),
     ("mapper: keyframes added (growth, observed space)", Counter.MAP_ADD_S, Counter.MAPPING_STEPS, 1),
     ("mapper: mapping step", Counter.MAP_STEP_S, Counter.MAPPING_STEPS, 1),
     ("mapper: map publication", Counter.PUBLISH_SECONDS, Counter.PUBLISHES, 0),
     ("mapper: memory and consistency", Counter.MAP_MEASURE_S, Counter.MAPPING_STEPS, 0),
+    ("mapper: keyframe indexed (relocalization, map check)", Counter.MAP_INDEX_S, Counter.KEYFRAMES, 1),
 )
 
 

@@ -68,6 +68,7 @@ from eslam_core.runtime.mesher import PackedSnapshot, snapshot_for_meshing
 from eslam_core.runtime.api import peak_rss_mb
 from eslam_core.runtime.budget import MappingBudget
 from eslam_core.slam import loaded_slam
+from eslam_core.tracking.places import Indexed, KeyframePlaces
 from eslam_core.tracking.session import PoseCorrections, Tracked, TrackingSession
 from eslam_core.trajectory import FrameRecord, TrackedTrajectory
 from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap
@@ -136,6 +137,12 @@ class MapAttach:  # mapper -> tracker, after the warm-up and after every growth:
 class Corrections:  # mapper -> tracker
     epoch: int
     corrections: PoseCorrections  # refined keyframe poses ((4, 4) float32), keyframes the store dropped
+
+
+@dataclass
+class PlacesMessage:  # mapper -> tracker: keyframes indexed for relocalization, with their map checks
+    epoch: int
+    indexed: list  # of places.Indexed
 
 
 @dataclass
@@ -415,16 +422,9 @@ class TrackerWorker:
                 self.ch.board.add(Counter.DROPPED_BY_TRACKER)  # taken, never tracked
 
     def _index_idle(self) -> bool:
+        """A loaded map's keyframes, indexed while idle (the mapper indexes the new ones: see PlacesMessage)."""
         with self.ch.board.timed(Counter.TRACK_INDEX_S):
-            indexed = self.session.index_next()
-        self._report_map_check()
-        return indexed
-
-    def _report_map_check(self) -> None:
-        check = self.session.map_check
-        if check is not None:
-            self.ch.board.set(Counter.MAP_CHECK_CM, 100.0 * check.metres)
-            self.ch.board.set(Counter.MAP_CHECK, 2.0 if check.disagrees else 1.0)
+            return self.session.index_next()
 
     def _sync_epoch(self) -> None:
         epoch = self.ch.control.epoch
@@ -445,6 +445,9 @@ class TrackerWorker:
                 elif isinstance(msg, Corrections):
                     self.session.apply(msg.corrections)
                     self.replica.refine(msg.corrections.refined)
+                elif isinstance(msg, PlacesMessage) and self.session.frontend.places is not None:
+                    for indexed in msg.indexed:
+                        self.session.frontend.places.take(indexed)
             msg = _get(self.ch.to_tracker, 0.0)
 
     def _wait_for_map(self) -> None:
@@ -522,10 +525,7 @@ class TrackerWorker:
         if tracked.keyframe_due:  # after the pose is out: it need not wait for the keyframe
             with board.timed(Counter.TRACK_KEYFRAME_S):
                 kf = self.session.new_keyframe(pf, tracked)
-                self._hand_over(kf, None)
-            with board.timed(Counter.TRACK_INDEX_S):
-                self.session.remember(kf)  # (indexed now only if the tracker was not idle for the older ones)
-            self._report_map_check()
+                self._hand_over(kf, None)  # (the mapper indexes it for relocalization: PlacesMessage)
         self.tracked += 1
         board.add(Counter.TRACKED)
         board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
@@ -610,8 +610,15 @@ class MapperWorker:
         self.tracker_done = False
         self.tracker_attached = False  # told of the map (MapAttach) in this epoch
         self.finished = False
+        # The keyframes for relocalization, indexed here and sent to the tracker's replica (places.py): a live
+        # tracker that extracted their features and checked the map with them while frames waited dropped frames.
+        cfg = self.cfg
+        self.places = KeyframePlaces(cfg.relocalization, self.intr, cfg.run.seed, publish=True) \
+            if cfg.relocalization.enabled and cfg.tracking.mode == "track" else None
         if self.epoch == 0 and self.setup.checkpoint:
             self.scene = loaded_slam(self.setup.checkpoint, self.setup.cfg, self.setup.intrinsics).map
+            if self.places is not None:
+                self.places.start_lost(self.scene.keyframes)
             self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
             self.steps_in_epoch = 1
             self._publish()
@@ -633,6 +640,9 @@ class MapperWorker:
                     self._map_next()
                 except Interrupted:
                     pass
+                self._index_places()
+            elif self.places is not None and self.places.idle_work:
+                self._index_places()
             elif self.tracker_done and not self.finished:
                 self.ch.to_parent.put(MapperFinished(self.epoch))
                 self.finished = True
@@ -694,9 +704,8 @@ class MapperWorker:
         else:
             field = self.scene.field
             with self.ch.board.timed(Counter.MAP_ADD_S):
-                for _ in range(self.budget.merged(len(self.pending))):  # behind: into the newest one's window
-                    self.scene.add_keyframe(self.pending.popleft().keyframe())
-                self.scene.add_keyframe(self.pending.popleft().keyframe())
+                for _ in range(self.budget.merged(len(self.pending)) + 1):  # behind: into the newest one's window
+                    self._add_keyframe(self.pending.popleft().keyframe())
             self._update_backlog()
             attach = self.scene.field is not field  # grown: a new map, in new shared buffers
             if attach:
@@ -714,6 +723,9 @@ class MapperWorker:
         dropped = self.scene.keyframes.take_dropped()
         if refined or dropped:
             self.ch.to_tracker.put(Corrections(self.epoch, PoseCorrections(refined, tuple(dropped))))
+            if self.places is not None:
+                self.places.refine(refined)
+                self.places.forget(dropped)
         self.steps_in_epoch += 1
         self.steps += 1
         board = self.ch.board
@@ -740,7 +752,7 @@ class MapperWorker:
         self._update_backlog()
         self.scene = SceneMap(self.cfg, self.intr, self.dirs_cam)
         self.scene.start(msg.extent)
-        self.scene.add_keyframe(msg.keyframe())
+        self._add_keyframe(msg.keyframe())
         self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
         self.first_map_at = self.cfg.runtime.first_map_after
         try:
@@ -748,6 +760,28 @@ class MapperWorker:
         finally:
             self.first_map_at = None
         return step.loss if step else float("nan")
+
+    def _add_keyframe(self, kf: Keyframe) -> None:
+        self.scene.add_keyframe(kf)
+        if self.places is not None:
+            self.places.remember(kf)
+
+    def _index_places(self) -> None:
+        """Index the new keyframes and check the map with them (one keyframe, at most 45 ms: between two
+        steps), and send the tracker what was indexed."""
+        if self.places is None:
+            return
+        board = self.ch.board
+        with board.timed(Counter.MAP_INDEX_S):
+            while self.places.index_next():
+                pass
+        done = self.places.take_done()
+        if done:
+            self.ch.to_tracker.put(PlacesMessage(self.epoch, done))
+        check = self.places.check
+        if check is not None:
+            board.set(Counter.MAP_CHECK_CM, 100.0 * check.metres)
+            board.set(Counter.MAP_CHECK, 2.0 if check.disagrees else 1.0)
 
     def _attach_tracker(self) -> None:
         self.ch.to_tracker.put(MapAttach(self.epoch, self.map.buffers, self.map.generation, self.scene.extent))

@@ -38,8 +38,9 @@ from eslam_core.mapping.map_frame import squared_first_pose
 from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.representation.field import SceneField
 from eslam_core.tracking.information import PoseCovariance
-from eslam_core.tracking.map_check import MapCheck, check_map, widened
+from eslam_core.tracking.map_check import MapCheck, widened
 from eslam_core.tracking.odometry import RGBDOdometry
+from eslam_core.tracking.places import KeyframePlaces
 from eslam_core.tracking.quality import (RESIDUAL_WINDOW, Quality, TrackingEvidence, is_lost, tracking_quality,
                                          typical_loss, weak_view)
 from eslam_core.tracking.render_tracker import Tracker, constant_velocity, time_ratio
@@ -50,7 +51,6 @@ from eslam_core.trajectory import TrackedTrajectory
 log = logging.getLogger("eslam")
 
 MAX_EXTRAPOLATION = 4.0  # frame gaps the constant-velocity prediction extrapolates over
-MAX_UNINDEXED = 2  # new keyframes waiting for relocalization features (see TrackingFrontEnd.remember)
 DEAD_RECKONED_QUALITY = 0.5  # of a pose from the odometry alone (dead_reckon): trusted less than a tracked one
 # Degraded frames in a row after which each frame is first matched against the keyframes, as a lost one is: the pose
 # may have slid along the free direction, and a tracker back on a constrained view from a pose tens of centimetres
@@ -131,90 +131,53 @@ class TrackingFrontEnd:
         self.unanchored: Optional[PoseCovariance] = None  # after a long such run: its last frame's covariance
         self.unanchored_for = 0  # frames since the run ended
         self.confirmations = 0  # relocalizations since then that confirmed the predicted motion
-        self.unindexed: list = []  # keyframes not in `places` yet (see remember)
-        self._loaded_unindexed = False
         self.fallback_pose = np.eye(4)
         self.odometry = None  # frame-to-frame odometry, its reference the last well-tracked frame
         if cfg.odometry.width > 0 and self.tracker is not None:
             self.odometry = RGBDOdometry(intr, cfg.odometry.width, cfg.camera.max_depth, cfg.odometry.iterations)
-        self.map_check: Optional[MapCheck] = None  # the newest keyframe placed by older ones (map_check.py)
-        self._checking = None  # the map check in progress (a generator: index_next takes its steps)
-        self.places = None  # the keyframes for relocalization (a KeyframeDatabase), when enabled
+        # The keyframes for relocalization and the map's check against itself (places.py), when enabled.
+        self.places: Optional[KeyframePlaces] = None
         if cfg.relocalization.enabled and self.tracker is not None:
-            from eslam_core.tracking.relocalization import KeyframeDatabase  # (OpenCV: loaded only when used)
-
-            self.places = KeyframeDatabase(cfg.relocalization, cfg.run.seed)
+            self.places = KeyframePlaces(cfg.relocalization, intr, cfg.run.seed)
 
     def start_lost(self, keyframes) -> None:
-        """A loaded map: the camera is not where the map ended, it has to be found against the map's keyframes
-        (those with every pixel: a reduced keyframe is too coarse for ORB), indexed when first needed."""
+        """A loaded map: the camera is not where the map ended, it has to be found against the map's keyframes."""
         self.lost, self.good = True, []
-        self.unindexed = [kf for kf in keyframes if kf.stride == 1]
-        self._loaded_unindexed = True
+        if self.places is not None:
+            self.places.start_lost(keyframes)
         if len(keyframes):  # the prior of a first frame that no keyframe explains: where the map ended
             self.fallback_pose = keyframes[-1].pose.double().numpy()
 
     def remember(self, kf: Keyframe) -> None:
-        """A new keyframe, for relocalization. Its features are extracted later (`index_next`, when the caller is
-        idle, or before the next relocalization): 6-15 ms per keyframe that a live tracker spends better on the
-        next frame. At most MAX_UNINDEXED wait: a tracker that is never idle indexes them here, a few late."""
+        """A new keyframe, for relocalization (KeyframePlaces.remember: indexed later)."""
         if self.places is not None:
-            self.unindexed.append(kf)
-            while len(self.unindexed) > MAX_UNINDEXED:
-                self.index_next()
+            self.places.remember(kf)
 
     def index_next(self) -> bool:
-        """One unit of the idle work (a few to 15 milliseconds): index the oldest keyframe waiting for it, or take
-        one step of the newest keyframe's map check (a candidate verified); False if nothing waits."""
-        if self._checking is not None:
-            try:
-                next(self._checking)
-            except StopIteration as done:
-                self._checking = None
-                if done.value is not None:
-                    if done.value.disagrees:
-                        log.warning("%s", done.value.reason)
-                    self.map_check = done.value
-            return True
-        if self.places is None or not self.unindexed:
-            return False
-        kf = self.unindexed.pop(0)
-        self.places.add(kf.number, kf.rgb.numpy(), kf.depth_image().numpy(), kf.pose, self.intr)
-        if not self._loaded_unindexed:  # (a loaded map's keyframes were checked when they were made)
-            self._checking = check_map(self.places, kf.number, kf.pose.double().numpy(), self.intr,
-                                       self.cfg.relocalization)
-        if not self.unindexed and self._loaded_unindexed:  # a loaded map: its words, before the first query
-            self._loaded_unindexed = False
-            self.places.build_vocabulary()
-        return True
+        """One unit of the idle work (KeyframePlaces.index_next); False if nothing waits."""
+        return self.places is not None and self.places.index_next()
 
     @property
     def idle_work(self) -> bool:
-        """Keyframes wait for indexing, or a map check for its next step (`index_next`)."""
-        return bool(self.unindexed) or self._checking is not None
+        return self.places is not None and self.places.idle_work
+
+    @property
+    def map_check(self) -> Optional[MapCheck]:
+        """The newest keyframe placed by older ones (map_check.py), None before one was."""
+        return None if self.places is None else self.places.check
 
     @property
     def map_disagrees(self) -> Optional[MapCheck]:
         """The newest map check, where it found the map disagreeing with itself (else None)."""
-        return self.map_check if self.map_check is not None and self.map_check.disagrees else None
+        return None if self.places is None else self.places.disagreement
 
     def forget(self, numbers) -> None:
-        """Keyframes the map's store dropped (as redundant or over its budget) are not relocalized against: the
-        index stays the size of the store, not of the time spent."""
         if self.places is not None:
-            dropped = {int(n) for n in numbers}
-            self.unindexed = [kf for kf in self.unindexed if kf.number not in dropped]
-            for number in dropped:
-                self.places.remove(number)
+            self.places.forget(numbers)
 
     def refine(self, poses: dict) -> None:
         if self.places is not None:
-            waiting = {kf.number: kf for kf in self.unindexed}
-            for number, pose in poses.items():
-                if int(number) in waiting:
-                    waiting[int(number)].pose = torch.as_tensor(pose).float()
-                if int(number) in self.places.entries:
-                    self.places.set_pose(int(number), pose)
+            self.places.refine(poses)
 
     def first_pose(self, pf: PreparedFrame, trajectory: TrackedTrajectory) -> np.ndarray:
         """The first frame fixes the map frame: its ground-truth pose when known (outputs share its frame), else the
@@ -309,10 +272,8 @@ class TrackingFrontEnd:
             return self._decided(len(trajectory), init, init, 0.0, Quality(1.0, "ok", False), None)
         found = None
         recheck = self.lost or self.degraded_run >= RECHECK_AFTER or self.unanchored is not None
-        while recheck and self.index_next():
-            pass
-        if recheck and self.places is not None and len(self.places):
-            found = self.places.relocalize(rgb_uint8(pf.rgb).numpy(), pf.depth.numpy(), self.intr)
+        if recheck and self.places is not None:
+            found = self.places.relocalize(rgb_uint8(pf.rgb).numpy(), pf.depth.numpy())
             if found is not None:
                 init, free_prior = torch.from_numpy(orthonormalize(found.pose)).float(), None
         # (The extent test uses the starting pose: a few centimetres off at most, and it saves a second pass.)

@@ -209,7 +209,8 @@ def word_histogram(word_ids: np.ndarray, idf: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------ database
 
 @dataclass
-class _Entry:
+class KeyframeEntry:
+    """A keyframe as the index stores it (a pickle of it is what the mapping process sends the tracker's replica)."""
     keyframe_id: int
     keypoints: np.ndarray  # (N, 2) float32, features with usable depth only
     descriptors: np.ndarray  # (N, 32) uint8
@@ -233,7 +234,7 @@ class KeyframeDatabase:
 
     def __init__(self, cfg: Optional[RelocalizationConfig] = None, seed: int = 0):
         self.cfg = cfg or RelocalizationConfig()
-        self.entries: dict[int, _Entry] = {}
+        self.entries: dict[int, KeyframeEntry] = {}
         self.seed = seed
         self._vocabulary: Optional[np.ndarray] = None
         self._vocabulary_from = 0  # descriptors in the database when the vocabulary was built
@@ -251,7 +252,7 @@ class KeyframeDatabase:
         uv, desc = orb_features(grey, self.cfg.features, self.cfg.fast_threshold, self.cfg.fast_threshold_min)
         z = depth_at(depth, uv, self.cfg.edge_tolerance) if len(uv) else np.zeros(0)
         keep = z > 0
-        entry = _Entry(int(keyframe_id), uv[keep], desc[keep], camera_points(uv[keep], z[keep], intr),
+        entry = KeyframeEntry(int(keyframe_id), uv[keep], desc[keep], camera_points(uv[keep], z[keep], intr),
                        thumbnail(grey, self.cfg.thumbnail_width, self.cfg.thumbnail_blur), _pose64(pose))
         self._insert(entry)
         return len(entry.keypoints)
@@ -267,7 +268,11 @@ class KeyframeDatabase:
         if self._vocabulary is not None and self.entries:
             self._update_weights()
 
-    def _insert(self, entry: _Entry, reweigh: bool = True) -> None:
+    def insert(self, entry: KeyframeEntry) -> None:
+        """A keyframe indexed elsewhere (its features extracted by another database's `add`)."""
+        self._insert(entry)
+
+    def _insert(self, entry: KeyframeEntry, reweigh: bool = True) -> None:
         self.entries[entry.keyframe_id] = entry
         if self._vocabulary is not None:
             entry.words = hamming_nearest(entry.descriptors, self._vocabulary)
@@ -375,7 +380,7 @@ class KeyframeDatabase:
         ordered = [i for group in zip(*rankings) for i in group]
         return list(dict.fromkeys(ordered))
 
-    def _verify(self, query: _Query, entry: _Entry, intr: Intrinsics) -> Optional[Relocalization]:
+    def _verify(self, query: _Query, entry: KeyframeEntry, intr: Intrinsics) -> Optional[Relocalization]:
         """PnP RANSAC of the frame's features against the keyframe's, back-projected into the world."""
         cfg = self.cfg
         if len(entry.descriptors) < cfg.min_inliers:
@@ -446,7 +451,7 @@ class KeyframeDatabase:
         if state["vocabulary"] is not None:
             db._vocabulary, db._vocabulary_from = state["vocabulary"].numpy(), int(state["vocabulary_from"])
         for kf in state["keyframes"]:
-            db._insert(_Entry(int(kf["id"]), kf["keypoints"].numpy(), kf["descriptors"].numpy(),
+            db._insert(KeyframeEntry(int(kf["id"]), kf["keypoints"].numpy(), kf["descriptors"].numpy(),
                               kf["points_cam"].numpy(), kf["thumbnail"].numpy(), kf["pose"].numpy()), reweigh=False)
         if db._vocabulary is not None and db.entries:
             db._update_weights()

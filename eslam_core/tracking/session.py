@@ -56,12 +56,12 @@ class TrackingSession:
         self.trajectory = trajectory if trajectory is not None else TrackedTrajectory()
 
     def first(self, pf: PreparedFrame) -> tuple[Tracked, Keyframe]:
-        """The frame that starts the map: it fixes the map frame and the initial extent, and is keyframe 0."""
+        """The frame that starts the map: it fixes the map frame and the initial extent, and is keyframe 0 (to
+        `remember` as any keyframe)."""
         pose0 = self.frontend.first_pose(pf, self.trajectory)
         extent = initial_extent(self.cfg, pf, self.intr, pose0)
         record = self.trajectory.record(pf.index, pf.timestamp, pose0, 0.0, pf.gt_pose, keyframe=True)
         kf = new_keyframe(pf, torch.from_numpy(pose0).float(), 0)
-        self.frontend.remember(kf)
         return Tracked(record, True, False, extent=extent), kf
 
     def step(self, pf: PreparedFrame, view: MapView, catch_up: Optional[Callable[[], bool]] = None) -> Tracked:
@@ -89,7 +89,8 @@ class TrackingSession:
         return new_keyframe(pf, tracked.pose.pose, tracked.record.reference)
 
     def remember(self, kf: Keyframe) -> None:
-        """A new keyframe, for relocalization (after it went to the map: the mapper need not wait for indexing)."""
+        """A new keyframe, for relocalization (after it went to the map: the mapper need not wait for indexing).
+        The pipelined runtime's tracker does not: its mapper indexes the keyframes (places.py)."""
         self.frontend.remember(kf)
 
     @property
