@@ -11,7 +11,7 @@ of feature planes aliases (two storeys share every xy projection) and where drif
 
 Walls are textured as the synthetic room's and every few metres something stands against them: a long view of
 plain wall is a degenerate view (datasets/degenerate.py), which is not what these scenes measure. The camera walks
-`step_m` a frame (2.5 cm: 0.75 m/s at 30 Hz) at eye height, looking ahead and panning +-35 degrees to either side.
+`step_m` a frame (2.5 cm: 0.75 m/s at 30 Hz) at eye height, looking ahead and panning +-25 degrees to either side.
 
 `generate_large_scene` writes a TUM folder as `synthetic.generate_scene` does, with the true mesh (mesh.ply).
 """
@@ -105,7 +105,9 @@ def build_flat(seed: int = 0) -> SyntheticScene:
     }
     for x in (-2.0, 2.0):  # the walls between the rooms
         parts["wall_west"] += _wall((x, 1), (x, 5), 0.0) + _wall((x, -5), (x, -1), 0.0)
-    rooms = [_furnished(cx, cy, yaw_deg=yaw) for cx, cy, yaw in
+    # (The room's painting hangs on a wall 1.5 m from its centre; these rooms are 4 m deep: it is left out.)
+    furniture = ("table_top", "table_legs", "box_red", "box_blue", "cabinet", "sofa", "lamp")
+    rooms = [_furnished(cx, cy, yaw_deg=yaw, only=furniture) for cx, cy, yaw in
              ((-4, 3.4, 0), (0, 3.4, 0), (4, 3.4, 0), (-4, -3.4, 180), (0, -3.4, 180), (4, -3.4, 180))]
     m = WALL_T / 2  # (between the doors, which are at x = -4, 0 and 4)
     hallway = _along_wall([(-2.0, 1 - m, 180), (2.2, 1 - m, 180), (-5.2, -1 + m, 0), (-1.8, -1 + m, 0),
@@ -211,16 +213,16 @@ def _smoothed(values: np.ndarray, window: int) -> np.ndarray:
 
 def walk(waypoints: list[tuple[float, float, float]], step_m: float = 0.025, seed: int = 0) -> np.ndarray:
     """(N, 4, 4) poses of a camera carried along the waypoints (x, y, floor height) at eye height: corners rounded
-    over half a metre, looking ahead along the walk and panning +-35 degrees to either side every 5 m, a few
-    centimetres of sway."""
+    over half a metre (the view turns over two), looking ahead along the walk and panning +-25 degrees to
+    either side every 5 m (at most 3 degrees a frame), a few centimetres of sway."""
     rng = np.random.default_rng([seed, 0x1A6])
     phase = rng.uniform(0.0, 2.0 * np.pi, 3)
     ground = _smoothed(_resampled(np.asarray(waypoints, dtype=np.float64), step_m), int(0.5 / step_m))
     heading = np.gradient(ground[:, :2], axis=0)
     heading = _smoothed(heading / np.maximum(np.linalg.norm(heading, axis=1, keepdims=True), 1e-9),
-                        int(1.0 / step_m))
+                        int(2.0 / step_m))
     s = np.arange(len(ground)) * step_m
-    pan = np.radians(35.0) * np.sin(2 * np.pi * s / 5.0 + phase[0])
+    pan = np.radians(25.0) * np.sin(2 * np.pi * s / 5.0 + phase[0])
     c, sn = np.cos(pan), np.sin(pan)
     look = np.stack([c * heading[:, 0] - sn * heading[:, 1], sn * heading[:, 0] + c * heading[:, 1]], 1)
     look /= np.maximum(np.linalg.norm(look, axis=1, keepdims=True), 1e-9)

@@ -68,7 +68,7 @@ from eslam_core.runtime.mesher import PackedSnapshot, snapshot_for_meshing
 from eslam_core.runtime.api import peak_rss_mb
 from eslam_core.runtime.budget import MappingBudget
 from eslam_core.slam import loaded_slam
-from eslam_core.tracking.places import Indexed, KeyframePlaces
+from eslam_core.tracking.places import KeyframePlaces
 from eslam_core.tracking.session import PoseCorrections, Tracked, TrackingSession
 from eslam_core.trajectory import FrameRecord, TrackedTrajectory
 from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta, SharedMap
