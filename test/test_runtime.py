@@ -169,6 +169,7 @@ def test_per_stage_profile_of_a_pipelined_run(runs):
     assert set(profile) == {stage for stage, *_ in STAGES}
     waits = profile.pop("tracker: waiting for the mapper")
     assert waits["ms"] > 0  # frame 1 waited for the warm-up
+    assert profile.pop("tracker: a loaded map's keyframes indexed")["total_s"] == 0  # (a new map: the mapper's)
     assert all(row["ms"] > 0 and np.isfinite(row["ms"]) for row in profile.values()), profile
     tracker = [row for stage, row in profile.items() if stage.startswith("tracker")]
     mapper = [row for stage, row in profile.items() if stage.startswith("mapper")]
