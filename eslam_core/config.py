@@ -469,6 +469,29 @@ class RuntimeConfig:
 
 
 @dataclass
+class SubmapConfig:
+    """The scene as several local maps and loop closure between them (submaps/atlas.py; not part of the paper)."""
+
+    # A keyframe farther than this from its submap's anchor (where the camera was when the submap began) goes to
+    # the nearest other submap within it, or starts a new one there. 0: one map, the paper's (it grows with the
+    # space it covers).
+    radius_m: float = 0.0
+    # Close loops: a keyframe placed by the keyframes of another submap (the map check's PnP, map_check.py) is an
+    # edge of the pose graph over the submaps' anchors; the graph is solved and the submaps move rigidly.
+    loop_closure: bool = True
+    # The drift allowed between two consecutive submaps' anchors, per metre between them (the information of the
+    # graph's odometry edges; a loop whose correction exceeds what this allows is refused as an outlier).
+    drift_m_per_m: float = 0.03
+    drift_deg_per_m: float = 1.5
+
+    def validate(self, check) -> None:
+        check(self.radius_m == 0.0 or self.radius_m >= 1.0, "submaps.radius_m",
+              "must be 0 (one map) or at least 1 m (a submap must hold a few keyframes' views)")
+        check(self.drift_m_per_m > 0.0 and self.drift_deg_per_m > 0.0, "submaps.drift_m_per_m",
+              "drift_m_per_m and drift_deg_per_m must be positive")
+
+
+@dataclass
 class Config:
     name: str = "eslam"
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -486,6 +509,7 @@ class Config:
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     quality: QualityConfig = field(default_factory=QualityConfig)
     relocalization: RelocalizationConfig = field(default_factory=RelocalizationConfig)
+    submaps: SubmapConfig = field(default_factory=SubmapConfig)
 
     def validate(self, source: str = "<config>") -> "Config":
         def check(ok: bool, key: str, message: str) -> None:
@@ -496,6 +520,8 @@ class Config:
             section = getattr(self, f.name)
             if dataclasses.is_dataclass(section):
                 section.validate(check)
+        check(self.submaps.radius_m == 0.0 or self.scene.bound is None, "submaps.radius_m",
+              "submaps need a map that grows (scene.bound null): each covers its own part of the space")
         return self
 
     def to_dict(self) -> dict:

@@ -6,6 +6,7 @@ The parts are the tracking session (`tracking/session.py`: front end, trajectory
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -16,9 +17,12 @@ from eslam_core.config import Config, config_from_dict
 from eslam_core.cpu import keep_freed_memory
 from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics
 from eslam_core.map_file import check_compatible, read_checkpoint
-from eslam_core.mapping.scene_map import SceneMap
+from eslam_core.mapping.scene_map import MappingStep, SceneMap, initial_extent
+from eslam_core.submaps.atlas import Atlas, anchored_at
 from eslam_core.tracking.session import PoseCorrections, TrackingSession
 from eslam_core.trajectory import TrackedTrajectory
+
+log = logging.getLogger("eslam")
 
 CHECKPOINT_VERSION = 4
 
@@ -46,13 +50,19 @@ class SLAM:
         self.intr = working_intrinsics(intrinsics, cfg.camera)
         self.dirs_cam = pixel_directions_table(self.intr)
         self.tracking = TrackingSession(cfg, self.intr, self.dirs_cam)
-        self.map = SceneMap(cfg, self.intr, self.dirs_cam)
+        self.atlas = Atlas(cfg, self.intr, self.dirs_cam)  # the submaps (one, with submaps.radius_m 0)
+        self.atlas.new_submap(None)
         # Called after every mapping iteration (Mapper.map): the runtime's way to end a step early or abandon it.
         self.after_mapping_iteration: Optional[Callable[[int], bool]] = None
 
     @property
     def trajectory(self) -> TrackedTrajectory:
         return self.tracking.trajectory
+
+    @property
+    def map(self) -> SceneMap:
+        """The active submap (the map, with one)."""
+        return self.atlas.active
 
     def step(self, frame: Frame) -> StepResult:
         pf = prepare_frame(frame, self.input_intrinsics, self.cfg.camera)
@@ -61,7 +71,7 @@ class SLAM:
             tracked, kf = self.tracking.first(pf)
             self.tracking.remember(kf)
             self.map.start(tracked.extent)
-            self.map.add_keyframe(kf)
+            self.map.add_keyframe(self.atlas.local(self.map, kf))
             step = self.map.warm_up(self.after_mapping_iteration)
             return StepResult(pf.index, self.trajectory.pose(n), 0.0, True, step.loss, {}, 1.0, False, True)
         tracked = self.tracking.step(pf, self.map)
@@ -69,14 +79,30 @@ class SLAM:
         if tracked.keyframe_due:
             kf = self.tracking.new_keyframe(pf, tracked)
             self.tracking.remember(kf)
-            self.map.add_keyframe(kf)
-            step = self.map.map_newest(self.after_mapping_iteration)
-            self.tracking.apply(PoseCorrections(step.refined, tuple(self.map.keyframes.take_dropped())))
-            mapping_loss, refined = step.loss, step.refined
+            step, sub = self._map_keyframe(kf, pf)
+            refined = self.atlas.to_world(sub, step.refined)
+            for check in self.tracking.take_checks():  # keyframes placed by other submaps': loops
+                refined.update(self.atlas.close_loop(check))
+            self.tracking.apply(PoseCorrections(refined, tuple(sub.keyframes.take_dropped())))
+            mapping_loss = step.loss
         pose = tracked.pose
         return StepResult(pf.index, self.trajectory.pose(n), pose.loss, pose.keyframe, mapping_loss, refined,
                           pose.quality.value, pose.lost, tracked.anchor, pose.covariance_matrix,
                           pose.quality.degraded)
+
+    def _map_keyframe(self, kf, pf) -> tuple[MappingStep, SceneMap]:
+        """A new keyframe into its submap (submaps/atlas.py) and a mapping step there: a new submap starts with it
+        and is warmed up as the first map was."""
+        sub = self.atlas.submap_for(kf)
+        if sub is not None:
+            sub.add_keyframe(self.atlas.local(sub, kf))
+            return sub.map_newest(self.after_mapping_iteration), sub
+        sub = self.atlas.new_submap(anchored_at(kf.pose.double().numpy()))
+        local = self.atlas.local(sub, kf)
+        sub.start(initial_extent(self.cfg, pf, self.intr, local.pose.double().numpy()))
+        sub.add_keyframe(local)
+        log.info("keyframe %d: submap %d begins (%d submaps)", kf.number, sub.number, len(self.atlas.submaps))
+        return sub.warm_up(self.after_mapping_iteration), sub
 
     # ------------------------------------------------------------------------------------------------ checkpoint
     def state_dict(self) -> dict:
@@ -86,6 +112,8 @@ class SLAM:
             "intrinsics": self.input_intrinsics.__dict__,
             "map": self.map.state_dict(),
             "trajectory": self.trajectory.state_dict(),
+            # With several submaps: all of them and the pose graph (the "map" above is the active one's).
+            **({"atlas": self.atlas.state_dict()} if len(self.atlas.submaps) > 1 else {}),
         }
 
     @staticmethod
@@ -98,9 +126,14 @@ class SLAM:
         # A checkpoint runs where it is loaded (`device`), not necessarily where it was made (that GPU may be absent).
         cfg = dict(state["config"], run=dict(state["config"].get("run", {}), device=device))
         slam = SLAM(config_from_dict(cfg, "checkpoint", migrate=True), Intrinsics(**state["intrinsics"]))
-        slam.map.load_state_dict(state["map"])
+        if "atlas" in state:
+            slam.atlas = Atlas(slam.cfg, slam.intr, slam.dirs_cam)
+            slam.atlas.load_state_dict(state["atlas"])
+        else:
+            slam.map.load_state_dict(state["map"])
         slam.tracking.trajectory = TrackedTrajectory.from_state_dict(state["trajectory"])
-        slam.tracking.frontend.start_lost(slam.map.keyframes)
+        atlas = slam.atlas
+        slam.tracking.frontend.start_lost([kf for sub in atlas.submaps for kf in atlas.to_world_keyframes(sub)])
         return slam
 
 

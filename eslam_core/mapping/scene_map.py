@@ -78,6 +78,10 @@ class SceneMap:
         self.rng = np.random.default_rng(cfg.run.seed)
         self.extent: Optional[np.ndarray] = None
         self.field: Optional[SceneField] = None
+        # As a submap (submaps/atlas.py): its number and the world pose of its frame, in which its field, extent,
+        # observed space and keyframe poses are. None: the world's own frame (one map).
+        self.number = 0
+        self.anchor: Optional[np.ndarray] = None
         self.version = 0  # of the field's values: counts the changes (trackers keep what they derive from one)
         self.observed: Optional[ObservedSurfaces] = None
         self.growths = 0

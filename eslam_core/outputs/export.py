@@ -10,9 +10,9 @@ import trimesh
 from eslam_core.outputs.culling import visible_mask
 from eslam_core.datasets.tum import write_tum
 from eslam_core.trajectory import Trajectory
-from eslam_core.mapping.scene_map import surface_points
+from eslam_core.mapping.scene_map import SceneMap, surface_points
 from eslam_core.atomic import atomic_output, write_atomic
-from eslam_core.outputs.mesh import MeshSettings, extract_mesh
+from eslam_core.outputs.mesh import EmptyMeshError, MeshSettings, extract_mesh
 from eslam_core.map_file import CheckpointError, read_checkpoint
 from eslam_core.slam import CHECKPOINT_VERSION, SLAM
 from eslam_core.tracking.information import PoseCovariance
@@ -109,33 +109,52 @@ def tracking_summary(trajectory) -> dict:
             "sigma_m_median": float(np.median(sigmas)) if sigmas else None}
 
 
-def observed_bound(slam: SLAM, margin: float) -> np.ndarray:
-    """Box around what the keyframes observed (plus a margin), inside the map's bound: what is worth meshing."""
+def observed_bound(scene: SceneMap, dirs_cam: torch.Tensor, width: int, margin: float) -> np.ndarray:
+    """Box around what a map's keyframes observed (plus a margin), inside its bound, in its frame: what is worth
+    meshing."""
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for kf in slam.map.keyframes:
-        pts = surface_points(slam.dirs_cam, kf, slam.intr.width, stride=1)
+    for kf in scene.keyframes:
+        pts = surface_points(dirs_cam, kf, width, stride=1)
         if len(pts):
             lo = np.minimum(lo, pts.amin(0).numpy())
             hi = np.maximum(hi, pts.amax(0).numpy())
-    extent = slam.map.extent
+    extent = scene.extent
     if not np.all(np.isfinite(lo)):
         return extent
     return np.stack([np.maximum(lo - margin, extent[0]), np.minimum(hi + margin, extent[1])])
 
 
-def map_mesh(slam: SLAM, resolution: float) -> trimesh.Trimesh:
-    """Marching cubes on the decoded SDF over the observed region, culled to what the keyframes saw."""
-    if slam.map.field is None:
-        raise CheckpointError("the map is empty: no frame has been processed")
+def submap_mesh(slam: SLAM, scene: SceneMap, resolution: float) -> trimesh.Trimesh:
+    """Marching cubes on one map's decoded SDF over its observed region, culled to what its keyframes saw, in the
+    world frame (a submap's mesh moved by its anchor)."""
     T = slam.cfg.model.truncation
-    keyframes, (h, w) = slam.map.keyframes, (slam.intr.height, slam.intr.width)
+    keyframes, (h, w) = scene.keyframes, (slam.intr.height, slam.intr.width)
     poses = torch.stack([kf.pose for kf in keyframes]).double().numpy()
     depths = torch.stack([kf.frame_depth_image(h, w) for kf in keyframes]).numpy()
 
     def visible(points: np.ndarray) -> np.ndarray:
         return visible_mask(points, poses, slam.intr, depths, T)
 
-    field = slam.map.field.eval()
+    field = scene.field.eval()
     with torch.no_grad():
-        return extract_mesh(field.sdf, field.color, observed_bound(slam, 2 * T),
+        mesh = extract_mesh(field.sdf, field.color, observed_bound(scene, slam.dirs_cam, slam.intr.width, 2 * T),
                             MeshSettings(resolution=resolution, truncation=T), visible_fn=visible)
+    if scene.anchor is not None:
+        mesh.apply_transform(scene.anchor)
+    return mesh
+
+
+def map_mesh(slam: SLAM, resolution: float) -> trimesh.Trimesh:
+    """The mesh of every submap (the map, with one), in the world frame."""
+    if slam.map.field is None:
+        raise CheckpointError("the map is empty: no frame has been processed")
+    meshes = []
+    for scene in slam.atlas.submaps:
+        try:
+            meshes.append(submap_mesh(slam, scene, resolution))
+        except EmptyMeshError:
+            if len(slam.atlas.submaps) == 1:
+                raise
+    if not meshes:
+        raise EmptyMeshError("no submap has a surface to mesh")
+    return meshes[0] if len(meshes) == 1 else trimesh.util.concatenate(meshes)

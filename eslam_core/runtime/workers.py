@@ -325,6 +325,7 @@ class MapReplica:
         self.version = 0  # of the field's values: counts the changes (new fields, versions copied in)
         self.observed: Optional[ObservedSurfaces] = None
         self.newest: Optional[Keyframe] = None
+        self.anchor: Optional[np.ndarray] = None  # (one map in the world frame: submaps are lock-step only so far)
 
     @property
     def started(self) -> bool:

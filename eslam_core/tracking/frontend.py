@@ -97,6 +97,9 @@ class MapView(Protocol):
     version: int  # changes whenever the field's values change
     extent: Optional[np.ndarray]
     observed: Optional[ObservedSurfaces]
+    # The world pose of the map's frame (a submap's anchor, submaps/atlas.py); the field, its extent, observed
+    # space and the keyframes are in that frame. None: the world's own.
+    anchor: Optional[np.ndarray]
 
     def newest_keyframe(self) -> Optional[Keyframe]: ...
 
@@ -138,7 +141,8 @@ class TrackingFrontEnd:
         # The keyframes for relocalization and the map's check against itself (places.py), when enabled.
         self.places: Optional[KeyframePlaces] = None
         if cfg.relocalization.enabled and self.tracker is not None:
-            self.places = KeyframePlaces(cfg.relocalization, intr, cfg.run.seed)
+            self.places = KeyframePlaces(cfg.relocalization, intr, cfg.run.seed,
+                                         keep_checks=cfg.submaps.radius_m > 0 and cfg.submaps.loop_closure)
 
     def start_lost(self, keyframes) -> None:
         """A loaded map: the camera is not where the map ended, it has to be found against the map's keyframes."""
@@ -276,12 +280,9 @@ class TrackingFrontEnd:
             found = self.places.relocalize(rgb_uint8(pf.rgb).numpy(), pf.depth.numpy())
             if found is not None:
                 init, free_prior = torch.from_numpy(orthonormalize(found.pose)).float(), None
-        # (The extent test uses the starting pose: a few centimetres off at most, and it saves a second pass.)
-        result = self.tracker.track(view.field, pf, init, view.extent, view.observed, view.newest_keyframe(),
-                                    view.version, free_prior)
+        result = self._track_against(view, pf, init, free_prior)
         if catch_up is not None and left_the_map(result) and catch_up():
-            result = self.tracker.track(view.field, pf, init, view.extent, view.observed, view.newest_keyframe(),
-                                        view.version, free_prior)
+            result = self._track_against(view, pf, init, free_prior)
         pose = result.pose
         if not torch.isfinite(pose).all():  # a diverged optimisation must not poison the trajectory and the map
             log.warning("frame %d: tracking diverged (non-finite pose); keeping the motion model's prediction",
@@ -311,6 +312,19 @@ class TrackingFrontEnd:
             covariance = PoseCovariance(covariance.matrix + self.unanchored.matrix, covariance.free)
         tracked.covariance = covariance if disagrees is None else widened(covariance, disagrees)
         return tracked
+
+    def _track_against(self, view: MapView, pf: PreparedFrame, init: torch.Tensor,
+                       free_prior: Optional[torch.Tensor]) -> TrackingResult:
+        """The tracker's answer from `init` against the view, in the world frame (a submap is tracked in its own
+        frame). (The extent test uses the starting pose: a few centimetres off at most, and it saves a pass.)"""
+        if view.anchor is None:
+            return self.tracker.track(view.field, pf, init, view.extent, view.observed, view.newest_keyframe(),
+                                      view.version, free_prior)
+        to_local = torch.from_numpy(np.linalg.inv(view.anchor)).to(init.dtype)
+        result = self.tracker.track(view.field, pf, to_local @ init, view.extent, view.observed,
+                                    view.newest_keyframe(), view.version,
+                                    None if free_prior is None else to_local @ free_prior)
+        return result.in_world(view.anchor)
 
     def _anchoring(self, index: int, confirmed: bool) -> Optional[str]:
         """For a frame whose view constrains the pose: why its pose may still be off along a direction that a run

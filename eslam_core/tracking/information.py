@@ -70,6 +70,13 @@ class PoseCovariance:
         """The unit world direction of that axis (its sign is arbitrary)."""
         return np.linalg.eigh(self.matrix[:3, :3])[1][:, -1]
 
+    def rotated(self, R: np.ndarray) -> "PoseCovariance":
+        """The covariance of the same pose seen from a frame turned by R (a submap's anchor: information.py's
+        position moves and turns about fixed axes both turn with the frame)."""
+        B = np.zeros((6, 6))
+        B[:3, :3] = B[3:, 3:] = np.asarray(R, dtype=np.float64)
+        return PoseCovariance(B @ self.matrix @ B.T, self.free, self.weakest)
+
     @property
     def sigma_deg(self) -> float:
         """The rotation's standard deviation about its worst-determined axis."""

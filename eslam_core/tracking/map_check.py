@@ -32,6 +32,7 @@ class MapCheck:
     metres: float  # between the camera centres of the tracked and the placed pose
     degrees: float  # the turn between them
     disagrees: bool
+    placed: Optional[np.ndarray] = None  # (4, 4) the keyframe's world pose as the older one places it
 
     @property
     def reason(self) -> str:
@@ -52,7 +53,7 @@ def check_map(places, number: int, tracked: np.ndarray, intr: Intrinsics,
     metres = float(np.linalg.norm(found.pose[:3, 3] - tracked[:3, 3]))
     degrees = rotation_angle_deg(found.pose[:3, :3].T @ tracked[:3, :3])
     return MapCheck(number, found.keyframe_id, metres, degrees,
-                    metres > cfg.map_disagree_m or degrees > cfg.map_disagree_deg)
+                    metres > cfg.map_disagree_m or degrees > cfg.map_disagree_deg, found.pose)
 
 
 def widened(covariance: Optional[PoseCovariance], check: MapCheck) -> PoseCovariance:

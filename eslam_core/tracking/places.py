@@ -36,8 +36,11 @@ class Indexed:
 
 
 class KeyframePlaces:
-    def __init__(self, cfg: RelocalizationConfig, intr: Intrinsics, seed: int = 0, publish: bool = False):
+    def __init__(self, cfg: RelocalizationConfig, intr: Intrinsics, seed: int = 0, publish: bool = False,
+                 keep_checks: bool = False):
         self.cfg, self.intr, self.publish = cfg, intr, publish
+        # With `keep_checks`: every check that placed a keyframe, since `take_checks` (loop closure's candidates).
+        self.checks: Optional[list[MapCheck]] = [] if keep_checks else None
         self.db = KeyframeDatabase(cfg, seed)
         self.unindexed: list[Keyframe] = []  # keyframes not in `db` yet (see remember)
         self.check: Optional[MapCheck] = None  # the newest keyframe placed by older ones
@@ -106,6 +109,12 @@ class KeyframePlaces:
             if check.disagrees:
                 log.warning("%s", check.reason)
             self.check = check
+            if self.checks is not None:
+                self.checks.append(check)
+
+    def take_checks(self) -> list[MapCheck]:
+        checks, self.checks = self.checks or [], [] if self.checks is not None else None
+        return checks
 
     @property
     def disagreement(self) -> Optional[MapCheck]:

@@ -2,8 +2,9 @@
 (render_tracker.py, sdf_tracker.py) return it, the front end (frontend.py) reads it."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 
 from eslam_core.tracking.information import PoseCovariance
@@ -24,3 +25,9 @@ class TrackingResult:
     # tracker, in observed space) / depth points inside the border: low when the view has left the mapped space.
     mapped_fraction: float = float("nan")
     covariance: PoseCovariance | None = None  # of the pose (information.py); None where not measured
+
+    def in_world(self, anchor: np.ndarray) -> "TrackingResult":
+        """The result of tracking in a submap's frame (its anchor: the frame's world pose), in the world's."""
+        A = torch.from_numpy(np.asarray(anchor, dtype=np.float64)).to(self.pose.dtype)
+        covariance = None if self.covariance is None else self.covariance.rotated(anchor[:3, :3])
+        return replace(self, pose=A @ self.pose, covariance=covariance)

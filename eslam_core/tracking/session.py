@@ -101,6 +101,11 @@ class TrackingSession:
     def index_next(self) -> bool:
         return self.frontend.index_next()
 
+    def take_checks(self) -> list:
+        """The map checks that placed a keyframe since the last call (with submaps: loop closure's candidates)."""
+        places = self.frontend.places
+        return [] if places is None else places.take_checks()
+
     @property
     def map_check(self) -> Optional[MapCheck]:
         """The newest check of the map against itself (map_check.py), None before one found a match."""

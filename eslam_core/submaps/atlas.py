@@ -1,0 +1,196 @@
+"""Submaps (not part of the paper's method): the scene as several local maps, each a SceneMap in its own frame, and
+a pose graph over their frames that loop closure corrects.
+
+A submap's frame is the world's moved to where the camera was when it began (its *anchor*, a world pose; the
+first submap's is the world's own frame): its feature planes, extent, observed space and keyframe poses are in that
+frame, so moving the anchor moves the submap rigidly, without refitting a plane. Its planes stay axis-aligned and
+bounded (a few metres), and two storeys land in different submaps instead of sharing every xy projection.
+
+Which submap a keyframe goes to: the active one while the camera stays within `submaps.radius_m` of its anchor;
+else the nearest other submap whose anchor is within that distance (the camera came back); else a new submap
+anchored at the camera's position (the world's axes kept). Tracking and mapping work on the active submap.
+
+The pose graph (pose_graph.py) has a node per submap anchor. Starting submap j from submap i adds an odometry edge,
+the relative pose of the anchors as tracked, weighted by the drift allowed over the distance between them
+(`submaps.drift_m_per_m`, `drift_deg_per_m`). A loop edge comes from a keyframe of submap j placed by the features
+of a keyframe of submap i (the map check's PnP, map_check.py): the keyframe's pose in i's frame and in j's give
+the relative pose of the anchors as that place sees it. The graph is solved (GNC refuses a loop that disagrees with
+the rest), every anchor moves to its solution, and every keyframe of a moved submap with it: those are the pose
+corrections that the trajectory, relocalization and the outputs follow (TrackingSession.apply).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from typing import Optional
+
+import numpy as np
+import torch
+
+from eslam_core.camera import Intrinsics
+from eslam_core.config import Config
+from eslam_core.mapping.keyframes import Keyframe
+from eslam_core.mapping.scene_map import SceneMap
+from eslam_core.submaps.pose_graph import PoseGraph
+from eslam_core.tracking.map_check import MapCheck
+
+log = logging.getLogger("eslam")
+
+# The accuracy of a keyframe placed by another's features (PnP refined with depth; relocalization.py): on the
+# development data within 1-3 cm and 1-2 degrees of the tracked pose where the map agrees with itself.
+LOOP_SIGMA_M, LOOP_SIGMA_DEG = 0.03, 2.0
+
+
+def information(sigma_m: float, sigma_deg: float) -> np.ndarray:
+    """A pose graph edge's information for independent standard deviations (rotation first, gtsam's order)."""
+    return np.diag([np.radians(sigma_deg) ** -2] * 3 + [sigma_m ** -2] * 3)
+
+
+def anchored_at(pose: np.ndarray) -> np.ndarray:
+    """A submap's anchor at a camera pose: the camera's position, the world's axes (the planes stay aligned with
+    the floor and walls that squared the map frame, map_frame.py)."""
+    anchor = np.eye(4)
+    anchor[:3, 3] = np.asarray(pose, dtype=np.float64)[:3, 3]
+    return anchor
+
+
+class Atlas:
+    def __init__(self, cfg: Config, intr: Intrinsics, dirs_cam: torch.Tensor):
+        self.cfg, self.intr, self.dirs_cam = cfg, intr, dirs_cam
+        self.submaps: list[SceneMap] = []
+        self.active: Optional[SceneMap] = None
+        self.owner: dict[int, int] = {}  # keyframe number -> its submap's number
+        self.graph = PoseGraph()
+        self.loops = 0  # loop edges the graph kept
+
+    @property
+    def started(self) -> bool:
+        return self.active is not None
+
+    def new_submap(self, anchor: Optional[np.ndarray]) -> SceneMap:
+        """An empty submap with that anchor (None: the world's frame), made the active one."""
+        sub = SceneMap(self.cfg, self.intr, self.dirs_cam)
+        sub.number, sub.anchor = len(self.submaps), anchor
+        self.graph.add_node(sub.number, np.eye(4) if anchor is None else anchor)
+        if self.active is not None:  # the anchors' relative pose as tracked, within the drift over the distance
+            before = self.anchor(self.active)
+            distance = float(np.linalg.norm(self.anchor(sub)[:3, 3] - before[:3, 3]))
+            sc = self.cfg.submaps
+            self.graph.add_edge(self.active.number, sub.number, np.linalg.inv(before) @ self.anchor(sub),
+                                information(max(sc.drift_m_per_m * distance, 0.01),
+                                            max(sc.drift_deg_per_m * distance, 0.5)), loop=False)
+        self.submaps.append(sub)
+        self.active = sub
+        return sub
+
+    @staticmethod
+    def anchor(sub: SceneMap) -> np.ndarray:
+        return np.eye(4) if sub.anchor is None else sub.anchor
+
+    def local(self, sub: SceneMap, kf: Keyframe) -> Keyframe:
+        """The keyframe as its submap keeps it: its pose in the submap's frame (the images are shared)."""
+        self.owner[kf.number] = sub.number
+        if sub.anchor is None:
+            return kf
+        pose = torch.from_numpy(np.linalg.inv(sub.anchor) @ kf.pose.double().numpy()).float()
+        return replace(kf, pose=pose)
+
+    def to_world(self, sub: SceneMap, poses: dict) -> dict:
+        """Keyframe number -> world pose, of poses in the submap's frame."""
+        if sub.anchor is None:
+            return poses
+        return {n: torch.from_numpy(sub.anchor @ torch.as_tensor(p).double().numpy()).float()
+                for n, p in poses.items()}
+
+    def to_world_keyframes(self, sub: SceneMap) -> list[Keyframe]:
+        """A submap's keyframes with world poses (the images shared): what relocalization indexes."""
+        if sub.anchor is None:
+            return list(sub.keyframes)
+        return [replace(kf, pose=torch.from_numpy(sub.anchor @ kf.pose.double().numpy()).float())
+                for kf in sub.keyframes]
+
+    def submap_for(self, kf: Keyframe) -> Optional[SceneMap]:
+        """Where a new keyframe goes: the active submap while the camera is within `submaps.radius_m` of its
+        anchor, else the nearest other one within it (made active); None: a new submap is due there."""
+        radius = self.cfg.submaps.radius_m
+        position = kf.pose.double().numpy()[:3, 3]
+        if radius <= 0 or np.linalg.norm(position - self.anchor(self.active)[:3, 3]) <= radius:
+            return self.active
+        distances = [np.linalg.norm(position - self.anchor(s)[:3, 3]) for s in self.submaps]
+        nearest = int(np.argmin(distances))
+        if distances[nearest] > radius:
+            return None
+        if self.submaps[nearest] is not self.active:
+            log.info("keyframe %d: back in submap %d (%.1f m from its anchor)", kf.number, nearest,
+                     distances[nearest])
+            self.active = self.submaps[nearest]
+        return self.active
+
+    # ---------------------------------------------------------------------------------------------- loops
+    def keyframe_pose(self, number: int) -> Optional[np.ndarray]:
+        """A kept keyframe's world pose (None: not kept)."""
+        sub = self.submaps[self.owner[number]] if number in self.owner else None
+        i = None if sub is None else sub.keyframes.position(number)
+        return None if i is None else self.anchor(sub) @ sub.keyframes[i].pose.double().numpy()
+
+    def close_loop(self, check: MapCheck) -> dict:
+        """A keyframe placed by another submap's keyframe (`check`) as a loop edge: the graph solved and the
+        submaps moved. Returns the corrections (keyframe number -> world pose), empty where the check is no loop
+        (the same submap) or the graph refused it."""
+        if not self.cfg.submaps.loop_closure or check.placed is None:
+            return {}
+        i, j = self.owner.get(check.by), self.owner.get(check.keyframe)
+        tracked = self.keyframe_pose(check.keyframe)
+        if i is None or j is None or i == j or tracked is None:
+            return {}
+        A_i, A_j = self.anchor(self.submaps[i]), self.anchor(self.submaps[j])
+        in_i = np.linalg.inv(A_i) @ check.placed  # the keyframe in i's frame, as i's keyframe places it
+        in_j = np.linalg.inv(A_j) @ tracked  # and in j's, as tracked and mapped
+        self.graph.add_edge(i, j, in_i @ np.linalg.inv(in_j), information(LOOP_SIGMA_M, LOOP_SIGMA_DEG), loop=True)
+        solution = self.graph.solve()
+        if len(self.graph.edges) - 1 in solution.rejected:
+            log.info("keyframe %d placed by keyframe %d (submaps %d, %d): refused as a loop (it disagrees with the "
+                     "graph)", check.keyframe, check.by, j, i)
+            return {}
+        self.loops = sum(e.loop for e in self.graph.edges) - len(solution.rejected)
+        self.graph.initial.update(solution.poses)  # (the next solve starts from here)
+        corrections = {}
+        for sub in self.submaps:
+            new = solution.poses[sub.number]
+            if np.allclose(new, self.anchor(sub), atol=1e-6):
+                continue
+            sub.anchor = new
+            corrections.update(self.to_world(sub, sub.keyframe_poses()))
+        log.info("loop closed: keyframe %d of submap %d placed by keyframe %d of submap %d; %d submaps moved",
+                 check.keyframe, j, check.by, i, len({self.owner[n] for n in corrections}))
+        return corrections
+
+    # ----------------------------------------------------------------------------------------- state, memory
+    def memory(self) -> dict:
+        out: dict = {}
+        for sub in self.submaps:
+            for key, value in sub.memory().items():
+                out[key] = out.get(key, 0) + value
+        return {**out, "submaps": len(self.submaps), "loops_closed": self.loops}
+
+    def state_dict(self) -> dict:
+        return {"submaps": [{"number": s.number, "anchor": None if s.anchor is None else torch.from_numpy(s.anchor),
+                             "map": s.state_dict()} for s in self.submaps],
+                "active": None if self.active is None else self.active.number,
+                "owner": dict(self.owner),
+                "edges": [{"a": e.a, "b": e.b, "T_ab": torch.from_numpy(e.T_ab),
+                           "information": torch.from_numpy(e.information), "loop": e.loop}
+                          for e in self.graph.edges]}
+
+    def load_state_dict(self, state: dict) -> None:
+        for saved in state["submaps"]:
+            anchor = None if saved["anchor"] is None else saved["anchor"].numpy()
+            sub = SceneMap(self.cfg, self.intr, self.dirs_cam)
+            sub.number, sub.anchor = saved["number"], anchor
+            sub.load_state_dict(saved["map"])
+            self.graph.add_node(sub.number, self.anchor(sub))
+            self.submaps.append(sub)
+        for e in state["edges"]:
+            self.graph.add_edge(e["a"], e["b"], e["T_ab"].numpy(), e["information"].numpy(), e["loop"])
+        self.owner = {int(k): int(v) for k, v in state["owner"].items()}
+        self.active = None if state["active"] is None else self.submaps[state["active"]]
