@@ -382,6 +382,10 @@ class RelocalizationConfig:
     map_check_gap: int = 20
     map_disagree_m: float = 0.20
     map_disagree_deg: float = 10.0
+    # A camera that is not lost (its view left some direction free, or it waits to be anchored again) takes a
+    # relocalization at most this far from its predicted position; one farther is another place that looks alike
+    # (the generated corridor loop's corners: a jump of 6.5 m, every later pose wrong). A lost camera takes any.
+    max_jump_m: float = 1.0
 
     def validate(self, check) -> None:
         check(self.features >= 50, "relocalization.features", "must be >= 50 (ORB keypoints per image)")
@@ -395,6 +399,7 @@ class RelocalizationConfig:
         check(self.candidates >= 1, "relocalization.candidates", "must be >= 1")
         check(self.enough_inliers >= self.min_inliers, "relocalization.enough_inliers", "must be >= min_inliers")
         check(self.map_check_gap >= 0, "relocalization.map_check_gap", "must be >= 0 keyframes (0: no map check)")
+        check(self.max_jump_m > 0, "relocalization.max_jump_m", "must be positive (metres)")
         check(self.map_disagree_m > 0 and self.map_disagree_deg > 0, "relocalization.map_disagree_m",
               "map_disagree_m and map_disagree_deg must be positive")
         check(0 < self.ratio <= 1, "relocalization.ratio", "must be in (0, 1]")

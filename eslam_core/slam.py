@@ -83,7 +83,8 @@ class SLAM:
             refined = self.atlas.to_world(sub, step.refined)
             for check in self.tracking.take_checks():  # keyframes placed by other submaps': loops
                 refined.update(self.atlas.close_loop(check))
-            self.tracking.apply(PoseCorrections(refined, tuple(sub.keyframes.take_dropped())))
+            dropped = tuple(n for n in sub.keyframes.take_dropped() if self.atlas.owns(sub, n))
+            self.tracking.apply(PoseCorrections(refined, dropped))
             mapping_loss = step.loss
         pose = tracked.pose
         return StepResult(pf.index, self.trajectory.pose(n), pose.loss, pose.keyframe, mapping_loss, refined,
@@ -97,10 +98,13 @@ class SLAM:
         if sub is not None:
             sub.add_keyframe(self.atlas.local(sub, kf))
             return sub.map_newest(self.after_mapping_iteration), sub
+        previous = self.atlas.active
         sub = self.atlas.new_submap(anchored_at(kf.pose.double().numpy()))
         local = self.atlas.local(sub, kf)
         sub.start(initial_extent(self.cfg, pf, self.intr, local.pose.double().numpy()))
         sub.add_keyframe(local)
+        for shared in self.atlas.overlap(previous, sub):
+            sub.add_keyframe(shared)
         log.info("keyframe %d: submap %d begins (%d submaps)", kf.number, sub.number, len(self.atlas.submaps))
         return sub.warm_up(self.after_mapping_iteration), sub
 

@@ -79,9 +79,12 @@ class SceneMap:
         self.extent: Optional[np.ndarray] = None
         self.field: Optional[SceneField] = None
         # As a submap (submaps/atlas.py): its number and the world pose of its frame, in which its field, extent,
-        # observed space and keyframe poses are. None: the world's own frame (one map).
+        # observed space and keyframe poses are. None: the world's own frame (one map). Its centre: where the
+        # camera was at its first keyframe, in its frame (which submap a keyframe goes to is by distance to it).
         self.number = 0
         self.anchor: Optional[np.ndarray] = None
+        self.centre: Optional[np.ndarray] = None
+        self.added = 0  # keyframes this map took (a submap's count from its own start, not the keyframes' numbers)
         self.version = 0  # of the field's values: counts the changes (trackers keep what they derive from one)
         self.observed: Optional[ObservedSurfaces] = None
         self.growths = 0
@@ -128,6 +131,7 @@ class SceneMap:
         drawn = torch.randint(n_inside, (500,)) if n_inside else None
         sample = None if drawn is None else points[drawn if inside is None else inside[drawn]]
         self.keyframes.append(kf, self.intr, sample)
+        self.added += 1
         # Observed space takes every 2nd pixel along both axes (as surface_points' default), from the same points.
         on_grid = every_second_pixel(*kf.usable.shape)[with_depth] & usable[with_depth]
         self.observed.add_keyframe(points[on_grid])
@@ -168,7 +172,8 @@ class SceneMap:
                         "raise scene.max_extent")
 
     def newest_keyframe(self) -> Optional[Keyframe]:
-        return self.keyframes[-1] if len(self.keyframes) else None
+        """The most recent keyframe (a new submap also holds older ones, shared after its first: atlas.py)."""
+        return max(self.keyframes, key=lambda kf: kf.number) if len(self.keyframes) else None
 
     def keyframe_poses(self) -> dict:
         return {kf.number: kf.pose for kf in self.keyframes}
@@ -203,7 +208,7 @@ class SceneMap:
         points = depth_points_world(self.dirs_cam[kf.frame_pixels(sample, self.intr.width)], d[sample], kf.pose)
         window = select_window(self.keyframes, current, points, self.intr, self.cfg.mapping.window, self.rng)
         mc = self.cfg.mapping
-        optimise_poses = mc.joint_poses and self.keyframes.made > mc.joint_poses_after
+        optimise_poses = mc.joint_poses and self.added > mc.joint_poses_after
         res = self.mapper.map(self.field, self.keyframes, window, first=False, optimise_poses=optimise_poses,
                               after_iteration=after_iteration, iterations=iterations)
         self.version += 1
@@ -243,6 +248,7 @@ class SceneMap:
             "field": {k: v.cpu() for k, v in self.field.state_dict().items()} if self.field is not None else None,
             "keyframes": [dict(kf.__dict__) for kf in self.keyframes],
             "keyframes_made": self.keyframes.made,
+            "keyframes_added": self.added,
             "points_outside": self.points_outside,
             "points_seen": self.points_seen,
             "rng": self.rng.bit_generator.state,
@@ -256,6 +262,7 @@ class SceneMap:
             self.version += 1
         self.keyframes.replace_all([Keyframe(**kf) for kf in state["keyframes"]])
         self.keyframes.made = max(self.keyframes.made, state["keyframes_made"])
+        self.added = state.get("keyframes_added", self.keyframes.made)
         if self.observed is not None:
             for kf in self.keyframes:
                 self.observed.add_keyframe(surface_points(self.dirs_cam, kf, self.intr.width))

@@ -86,6 +86,11 @@ def agrees(a: np.ndarray, b: np.ndarray) -> bool:
     return float(np.linalg.norm(d[:3, 3])) < AGREE_M and rotation_angle_deg(d[:3, :3]) < AGREE_DEG
 
 
+def plausible_jump(found: np.ndarray, predicted: np.ndarray, max_jump_m: float) -> bool:
+    """Whether a relocalized pose is near enough to the predicted one to be the same place."""
+    return float(np.linalg.norm(np.asarray(found)[:3, 3] - np.asarray(predicted)[:3, 3])) <= max_jump_m
+
+
 def left_the_map(result: TrackingResult) -> bool:
     """Whether the tracker found too little of the frame in mapped space to place it."""
     return not math.isfinite(result.loss) or (math.isfinite(result.mapped_fraction)
@@ -278,6 +283,12 @@ class TrackingFrontEnd:
         recheck = self.lost or self.degraded_run >= RECHECK_AFTER or self.unanchored is not None
         if recheck and self.places is not None:
             found = self.places.relocalize(rgb_uint8(pf.rgb).numpy(), pf.depth.numpy())
+            if found is not None and not self.lost and not plausible_jump(found.pose, predicted,
+                                                                        self.cfg.relocalization.max_jump_m):
+                log.info("frame %d: relocalized %.1f m from its predicted position, beyond relocalization.max_jump_m "
+                         "for a camera that is not lost: another place that looks alike, not used", pf.index,
+                         float(np.linalg.norm(found.pose[:3, 3] - predicted[:3, 3])))
+                found = None
             if found is not None:
                 init, free_prior = torch.from_numpy(orthonormalize(found.pose)).float(), None
         result = self._track_against(view, pf, init, free_prior)
