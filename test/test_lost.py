@@ -11,6 +11,7 @@ from eslam_core.config import load_config
 from eslam_core.frames import prepare_frame
 from eslam_core.geometry import rotation_angle_deg
 from eslam_core.slam import SLAM
+from eslam_core.tracking.frontend import RECHECK_AFTER
 
 FAST = {"mapping": {"first_iterations": 150}}
 
@@ -146,3 +147,25 @@ def test_a_saved_map_is_loaded_by_another_runtime_which_relocalizes(mapped, room
     assert np.linalg.norm(poses[-1][:3, 3] - room_sequence[frames[-1]].pose[:3, 3]) < 0.02
     kept = load_checkpoint(after).map.field.state_dict()
     assert all(torch.equal(kept[k], v) for k, v in mapped.map.field.state_dict().items())
+
+
+@pytest.mark.parametrize("max_jump_m, taken", [(5.0, True), (0.1, False)])
+def test_a_camera_that_is_not_lost_takes_no_relocalization_farther_than_max_jump(room_sequence, max_jump_m, taken):
+    """Frame 5's view shown while the camera, at frame 29's place and not lost, is rechecked against the keyframes
+    (as after a run of views that left its pose free): the match, 0.23 m from the prediction, is taken only within
+    `relocalization.max_jump_m` (beyond it, for a camera that is not lost, it is another place that looks alike)."""
+    slam = SLAM(load_config("fast", {**FAST, "relocalization": {"max_jump_m": max_jump_m}}),
+                room_sequence.intrinsics)
+    for i in range(30):
+        assert not slam.step(room_sequence[i]).lost
+    jump = np.linalg.norm(room_sequence[5].pose[:3, 3] - room_sequence[29].pose[:3, 3])
+    assert 0.15 < jump < 5.0
+    frontend = slam.tracking.frontend
+    frontend.degraded_run = RECHECK_AFTER  # the front end's own trigger for a recheck of a camera not lost
+    f = room_sequence[5]
+    res = slam.step(Frame(100, 1.0 + 30 / 30.0, f.rgb, f.depth, f.pose))
+    t_err, _ = _error(res.pose, f.pose)
+    if taken:
+        assert t_err < 0.03 and not res.lost
+    else:  # not placed at frame 5's: tracked from the prediction (frame 29's place), which does not explain it,
+        assert t_err > 0.1 and res.lost  # and said so
