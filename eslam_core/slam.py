@@ -134,7 +134,7 @@ class SLAM:
             slam.atlas = Atlas(slam.cfg, slam.intr, slam.dirs_cam)
             slam.atlas.load_state_dict(state["atlas"])
         else:
-            slam.map.load_state_dict(state["map"])
+            slam.atlas.load_single_map(state["map"])
         slam.tracking.trajectory = TrackedTrajectory.from_state_dict(state["trajectory"])
         atlas = slam.atlas
         slam.tracking.frontend.start_lost([kf for sub in atlas.submaps for kf in atlas.to_world_keyframes(sub)])

@@ -485,7 +485,7 @@ class MultiProcessRuntime(SavingMixin):
                                                                     path.format(request_id)), "a snapshot of the map")
         slam = SLAM(self.cfg, self.intrinsics)
         if state is not None:  # else reset meanwhile, or nothing tracked yet
-            slam.map.load_state_dict(read_snapshot(state))
+            slam.atlas.load_single_map(read_snapshot(state))
             slam.tracking.trajectory = TrackedTrajectory.from_state_dict(trajectory)
         return slam
 

@@ -202,6 +202,11 @@ class Atlas:
                            "information": torch.from_numpy(e.information), "loop": e.loop}
                           for e in self.graph.edges]}
 
+    def load_single_map(self, state: dict) -> None:
+        """A checkpoint of one map (no submaps): it is the first submap, every keyframe its own."""
+        self.active.load_state_dict(state)
+        self.owner = {kf.number: self.active.number for kf in self.active.keyframes}
+
     def load_state_dict(self, state: dict) -> None:
         for saved in state["submaps"]:
             anchor = None if saved["anchor"] is None else saved["anchor"].numpy()

@@ -139,6 +139,7 @@ class TrackingFrontEnd:
         self.unanchored: Optional[PoseCovariance] = None  # after a long such run: its last frame's covariance
         self.unanchored_for = 0  # frames since the run ended
         self.confirmations = 0  # relocalizations since then that confirmed the predicted motion
+        self.odometry_predicted = False  # the newest prediction is the frame-to-frame odometry's motion
         self.fallback_pose = np.eye(4)
         self.odometry = None  # frame-to-frame odometry, its reference the last well-tracked frame
         if cfg.odometry.width > 0 and self.tracker is not None:
@@ -224,6 +225,7 @@ class TrackingFrontEnd:
         (information.py), and after a degraded frame the prediction keeps the camera where it was (`_held`): the
         error grows no faster than the camera moves, and the frame says it is degraded. External odometry does
         not see the view: its pose is kept as it is."""
+        self.odometry_predicted = False
         if len(trajectory) == 0:
             return self.fallback_pose, 1.0, None
         last = self.good[-1] if self.good else len(trajectory) - 1
@@ -239,6 +241,7 @@ class TrackingFrontEnd:
         if odometry_frame is not None and self.odometry.reference_key == last:
             motion = self.odometry.motion(odometry_frame)
             if motion is not None:
+                self.odometry_predicted = not self.degraded_run
                 return self._held(prev @ motion, prev), gap, None if self.degraded_run else prev
         if not self.good:
             return prev, gap, None
@@ -306,12 +309,15 @@ class TrackingFrontEnd:
             unexplained = pose[:3, 3].double().numpy() - self._velocity_prediction(trajectory, gap)[:3, 3]
         weak = weak_view(result.covariance, unexplained, self.cfg.quality) is not None
         confirmed = found is not None and agrees(found.pose, predicted)
+        # The map-free odometry's motion from a well-tracked frame, and the map's pose agreeing with it: no jump.
+        odometry_agrees = self.odometry_predicted and found is None and agrees(pose.double().numpy(), predicted)
         unanchored = None if weak else self._anchoring(pf.index, confirmed)
         evidence = TrackingEvidence(result.depth_fraction, result.inlier_fraction, result.observed_fraction,
                                     result.loss, (torch.linalg.inv(init.double()) @ pose.double()).numpy(),
                                     typical_loss(self.recent_losses), 1.0 if found is not None else gap, self.lost,
                                     found is not None or self._prior_holds(pf), result.covariance,
-                                    None if disagrees is None else disagrees.reason, unanchored, unexplained)
+                                    None if disagrees is None else disagrees.reason, unanchored, unexplained,
+                                    odometry_agrees)
         quality = tracking_quality(evidence, self.cfg.quality)
         tracked = self._decided(len(trajectory), pose, init, result.loss, quality,
                                 None if found is None else found.keyframe_id, pf, odometry_frame)
