@@ -2,10 +2,10 @@
 reason. The evidence figures are those measured on the synthetic room (SDF tracker against a map fitted to three
 keyframes, frames 13-29 tracked from the constant-velocity prediction, then from poses 10-50 cm / 5-20 degrees
 off; see tracking/quality.py)."""
-from dataclasses import replace
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from collections import deque
 
 import numpy as np
