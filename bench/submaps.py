@@ -61,6 +61,19 @@ def end_drift_cm(run_dir: Path) -> float:
     return float(100 * np.linalg.norm(estimate.poses[-1][:3, 3] - truth.poses[last][:3, 3]))
 
 
+def quality_profile(run_dir: Path) -> dict:
+    """How the run's poses said they were (pose_quality.csv): the share of frames lost and degraded, the first
+    lost frame, and the longest run of degraded frames (no keyframe is made there: the map stops growing)."""
+    q = np.genfromtxt(run_dir / "pose_quality.csv", delimiter=",", names=True)
+    lost, degraded = q["lost"] > 0, q["degraded"] > 0
+    longest = run = 0
+    for d in degraded:
+        run = run + 1 if d else 0
+        longest = max(longest, run)
+    return {"lost_percent": 100 * float(lost.mean()), "degraded_percent": 100 * float(degraded.mean()),
+            "first_lost": int(np.argmax(lost)) if lost.any() else None, "longest_degraded_run": longest}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default=",".join(("room",) + SCENES),
@@ -101,7 +114,8 @@ def main(argv=None) -> int:
                "completion_ratio_percent": mesh.get("completion_ratio_percent"),
                "map_mb": summary["parameter_count"] * 4 / 2**20, "peak_memory_mb": summary["peak_memory_mb"],
                "seconds_per_frame": summary["seconds_per_frame"], "submaps": summary.get("submaps", 1),
-               "loops": summary.get("loops_closed"), "command": " ".join(command), "wall_seconds": wall}
+               "loops": summary.get("loops_closed"), **quality_profile(out), "command": " ".join(command),
+               "wall_seconds": wall}
         rows.append(row)
         print(json.dumps({k: v for k, v in row.items() if k != "command"}), flush=True)
 
@@ -110,7 +124,8 @@ def main(argv=None) -> int:
             f"{value:.{digits}f}"
 
     header = ["scene", "frames", "path (m)", "ATE (cm)", "end drift (cm)", "accuracy (cm)", "completion (cm)",
-              "completion < 5 cm (%)", "planes (MB)", "peak memory (MB)", "s / frame", "submaps", "loops"]
+              "completion < 5 cm (%)", "planes (MB)", "peak memory (MB)", "s / frame", "submaps", "loops",
+              "lost (%)", "degraded (%)", "first lost", "longest degraded run"]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     for r in rows:
         lines.append("| " + " | ".join([r["scene"], str(r["frames"]), cell(r["path_m"], 1), cell(r["ate_cm"], 2),
@@ -118,7 +133,10 @@ def main(argv=None) -> int:
                                         cell(r["completion_cm"], 2), cell(r["completion_ratio_percent"], 1),
                                         cell(r["map_mb"], 1), cell(r["peak_memory_mb"], 0),
                                         cell(r["seconds_per_frame"], 3), str(r["submaps"]),
-                                        "–" if r["loops"] is None else str(r["loops"])]) + " |")
+                                        "–" if r["loops"] is None else str(r["loops"]),
+                                        cell(r["lost_percent"], 1), cell(r["degraded_percent"], 1),
+                                        "–" if r["first_lost"] is None else str(r["first_lost"]),
+                                        str(r["longest_degraded_run"])]) + " |")
     table = "\n".join(lines) + "\n"
     (args.out / "submaps.md").write_text(table)
     (args.out / "submaps.json").write_text(json.dumps({"config": args.config, "workers": args.workers,

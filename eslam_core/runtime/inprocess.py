@@ -145,7 +145,7 @@ class InProcessRuntime(SavingMixin):
         with self._slam_lock:
             if epoch != self._epoch:
                 return
-            memory = self.slam.map.memory()
+            memory = self.slam.atlas.memory()  # (summed over the submaps)
             consistency = self.slam.map.consistency() if self.slam.map.consistency_due() else None
         figures = {k: memory[k] for k in ("map_bytes", "keyframe_bytes", "keyframes_kept")}
         if consistency is not None:
