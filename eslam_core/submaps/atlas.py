@@ -8,7 +8,8 @@ bounded (a few metres), and two storeys land in different submaps instead of sha
 
 Which submap a keyframe goes to: the active one while the camera stays within `submaps.radius_m` of its centre
 (where the camera was at its first keyframe); else the nearest other submap whose centre is within that distance
-(the camera came back); else a new submap anchored at the camera's position (the world's axes kept). Tracking and mapping work on the active submap.
+(the camera came back); else a new submap anchored at the camera's position (the world's axes kept), which shares
+the newest keyframes of the one left (`overlap`). Tracking and mapping work on the active submap.
 
 The pose graph (pose_graph.py) has a node per submap anchor. Starting submap j from submap i adds an odometry edge,
 the relative pose of the anchors as tracked, weighted by the drift allowed over the distance between them
