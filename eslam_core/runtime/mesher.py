@@ -36,7 +36,7 @@ import torch
 import torch.multiprocessing  # noqa: F401 - registers the reductions that send a shared tensor as a handle
 
 from eslam_core.camera import Intrinsics
-from eslam_core.child_process import become_child, spawned_with_stop_signals_blocked
+from eslam_core.child_process import become_child, spawned_with_stop_signals_blocked, wait_for_start
 from eslam_core.cpu import lower_priority
 from eslam_core.outputs.mesh import MeshSettings
 from eslam_core.outputs.mesh_blocks import (BlockLayout, IncrementalMesher, Key, MeshSource, mesh_source, thinning_stride,
@@ -47,7 +47,9 @@ log = logging.getLogger("eslam")
 # Most triangles in one block's soup: RViz and Foxglove draw a marker as one vertex buffer; a block over it is
 # thinned like the whole mesh is over its budget.
 MAX_BLOCK_TRIANGLES = 65536
-START_TIMEOUT_S = 60.0
+# Starting: no CPU progress for this long is a hung child (child_process.wait_for_start); nor may it take longer.
+START_STALLED_S = 60.0
+START_LIMIT_S = 900.0
 
 
 class MesherCrashed(RuntimeError):
@@ -286,13 +288,16 @@ class BackgroundMesher:
         lower_priority(self.setup.nice, self._process.pid)  # now, before it spends seconds importing torch
         child.close()
         try:
-            started = self._connection.poll(START_TIMEOUT_S) and self._receive() == "ready"
+            started = wait_for_start(self._connection, self._process, START_STALLED_S, START_LIMIT_S) and \
+                self._receive() == "ready"
         except (EOFError, OSError):
             started = False
         if not started:
             code = self._process.exitcode
             self.close()
-            raise MesherCrashed(f"the mesh process did not start (exit code {code}; see its output above)")
+            why = f"exit code {code}; see its output above" if code is not None else \
+                f"no progress for {START_STALLED_S:.0f} s, or not ready within {START_LIMIT_S:.0f} s"
+            raise MesherCrashed(f"the mesh process did not start ({why})")
         self.busy, self.pending, self._have = False, 0, set()
 
     def submit(self, snapshot: MeshSnapshot | PackedSnapshot | None, everything: bool = False) -> None:
