@@ -4,6 +4,7 @@ single-room reference.
 
     python bench/submaps.py                                  # every scene (generated once, cached)
     python bench/submaps.py --scenes corridor_loop --frames 0:400 --out runs/submaps-quick
+    python bench/submaps.py --scenes flat --sensor ideal     # exact depth at any range: the tracker's part apart
 
 Each run is `python -m eslam_core run` in its own process (the command is in the JSON), then `eslam eval`'s
 `evaluate_run` against the scene's true mesh: ATE RMSE, mesh accuracy, completion and completion ratio (< 5 cm),
@@ -30,24 +31,29 @@ sys.path.insert(0, str(ROOT))
 
 from eslam_core.cli import parse_frames  # noqa: E402
 from eslam_core.datasets.large_scenes import SCENES, generate_large_scene  # noqa: E402
-from eslam_core.datasets.synthetic import ensure_scene  # noqa: E402
+from eslam_core.datasets.synthetic import SensorModel, ensure_scene  # noqa: E402
 from eslam_core.evaluation.report import evaluate_run, write_report_json  # noqa: E402
 from eslam_core.datasets.tum import read_tum  # noqa: E402
 
 CACHE = Path(os.environ.get("ESLAM_CACHE", Path.home() / ".cache" / "eslam")) / "large"
 
 
-def scene_folder(name: str, width: int, height: int) -> Path:
+# The generated scenes' sensor: Kinect-like (the default) or ideal (exact depth at any range, no noise): the second
+# separates what the submaps and loops do from what the sensor's range and noise do to the tracker.
+SENSORS = {"kinect": SensorModel(), "ideal": SensorModel.ideal()}
+
+
+def scene_folder(name: str, width: int, height: int, sensor: str = "kinect") -> Path:
     """The generated scene (once: later runs reuse it)."""
     if name == "room":
-        return ensure_scene(CACHE.parent, n_frames=300, width=width, height=height)
-    folder = CACHE / f"{name}-{width}x{height}"
+        return ensure_scene(CACHE.parent, n_frames=300, width=width, height=height, sensor=SENSORS[sensor])
+    folder = CACHE / (f"{name}-{width}x{height}" + ("" if sensor == "kinect" else f"-{sensor}"))
     if not (folder / "scene.json").is_file():
         partial = folder.with_name(folder.name + ".partial")
         if partial.exists():
             shutil.rmtree(partial)
         started = time.perf_counter()
-        generate_large_scene(partial, name, width, height)
+        generate_large_scene(partial, name, width, height, sensor=SENSORS[sensor])
         partial.rename(folder)
         print(f"generated {name}: {time.perf_counter() - started:.0f} s", flush=True)
     return folder
@@ -82,6 +88,8 @@ def main(argv=None) -> int:
     parser.add_argument("--workers", type=int, default=1, help="1: lock-step; 2: the two-process runtime")
     parser.add_argument("--frames", type=parse_frames, default=(0, None))
     parser.add_argument("--size", default="320x240", help="image size of the generated scenes")
+    parser.add_argument("--sensor", choices=sorted(SENSORS), default="kinect",
+                        help="the generated scenes' sensor: kinect (range 0.3-5 m, noise, holes) or ideal")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "submaps")
     args = parser.parse_args(argv)
@@ -94,7 +102,7 @@ def main(argv=None) -> int:
 
     rows = []
     for name in scenes:
-        data = scene_folder(name, width, height)
+        data = scene_folder(name, width, height, args.sensor)
         out = args.out / name
         start, stop = args.frames
         command = [sys.executable, "-m", "eslam_core", "run", "--config", args.config, "--data", str(data), "--out",
@@ -139,7 +147,7 @@ def main(argv=None) -> int:
                                         str(r["longest_degraded_run"])]) + " |")
     table = "\n".join(lines) + "\n"
     (args.out / "submaps.md").write_text(table)
-    (args.out / "submaps.json").write_text(json.dumps({"config": args.config, "workers": args.workers,
+    (args.out / "submaps.json").write_text(json.dumps({"config": args.config, "workers": args.workers, "sensor": args.sensor,
                                                        "rows": rows}, indent=2))
     print()
     print(table)
