@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 import torch
 
+from eslam_core.camera import Intrinsics
 from eslam_core.tracking.information import (PRIOR_SIGMA_M, UNCONSTRAINED_BELOW, constrained_directions,
-                                             constrained_step, pose_covariance, unconstrained_part)
+                                             constrained_step, pose_covariance, unconstrained_part, view_information)
 from eslam_core.tracking.sdf_tracker import normal_equations
 
 CAMERA = np.array([0.4, -0.3, 1.2])
@@ -46,6 +47,41 @@ def test_two_planes_and_a_corridor_leave_their_direction_free(normals, free):
     assert cov.sigma_m == pytest.approx(PRIOR_SIGMA_M, rel=0.05)  # nothing but the prior along it
     assert np.sqrt(np.array(free) @ cov.matrix[:3, :3] @ np.array(free)) > 10 * np.sqrt(
         np.linalg.eigvalsh(cov.matrix[:3, :3])[1])  # far above every other axis
+
+
+def _depth_of_planes(planes, noisy: bool, seed: int = 0) -> tuple[np.ndarray, Intrinsics]:
+    """A 320 x 240 depth image (camera frame: x right, y down, z ahead) of the nearest of the planes n . X = c in
+    front of the camera, with a Kinect-like noise (1.2 mm + 1.9 mm (z - 0.4)^2) where `noisy`."""
+    intr = Intrinsics(320, 240, 271.6, 271.6, 159.5, 119.5)
+    v, u = np.mgrid[0:240, 0:320]
+    rays = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u, dtype=float)], -1)
+    depth = np.full((240, 320), np.inf)
+    for normal, c in planes:
+        along = rays @ np.asarray(normal, dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(along * c > 0, c / along, np.inf)
+        depth = np.minimum(depth, t)
+    depth[~np.isfinite(depth) | (depth > 5.0)] = 0.0
+    if noisy:
+        sigma = 0.0012 + 0.0019 * (depth - 0.4) ** 2
+        depth = np.where(depth > 0, depth + np.random.default_rng(seed).normal(size=depth.shape) * sigma, 0.0)
+    return depth.astype(np.float32), intr
+
+
+FLOOR, CEILING = ((0, 1, 0), 1.0), ((0, 1, 0), -1.1)  # (camera frame: y is down)
+WALL_AHEAD, WALL_RIGHT = ((0, 0, 1), 3.0), ((1, 0, 0), 1.0)
+
+
+@pytest.mark.parametrize("noisy", [False, True])
+def test_the_view_itself_constrains_a_corner_with_a_floor_not_two_planes_or_a_wall(noisy):
+    """information.view_information: what the frame's own surfaces could pin down once the map holds them. Depth
+    noise must not fake a constraint (unaveraged normals gave 60 along two planes' edge)."""
+    corner, intr = _depth_of_planes([FLOOR, WALL_AHEAD, WALL_RIGHT], noisy)
+    assert view_information(corner, intr) > 2 * UNCONSTRAINED_BELOW
+    for planes in ([WALL_AHEAD, CEILING], [WALL_AHEAD, WALL_RIGHT], [WALL_AHEAD]):
+        depth, intr = _depth_of_planes(planes, noisy)
+        assert view_information(depth, intr) < UNCONSTRAINED_BELOW, planes  # (noisy, the wall 3 m away: 4-19; exact: 0)
+    assert view_information(np.zeros((240, 320), np.float32), intr) == 0.0  # no depth: nothing pinned down
 
 
 def test_the_step_moves_only_along_constrained_directions_and_the_free_part_is_what_is_left():

@@ -172,6 +172,22 @@ def test_a_pose_is_degraded_where_the_view_leaves_a_direction_free_not_where_it_
     assert not narrow.degraded  # a free direction the prior keeps tight (a still camera) is no concern
 
 
+def test_a_view_that_pins_the_pose_down_where_the_map_does_not_is_capped_but_mapped():
+    """The map lacks the view (a room walked into, not settled yet): the pose is as free against the map, and says
+    so, but the frame is not degraded, so that it is mapped and the map learns the view."""
+    from dataclasses import replace
+
+    from eslam_core.tracking.information import PoseCovariance
+
+    free = PoseCovariance(np.diag([0.03**2] * 3 + [1e-6] * 3), free=True)
+    q = tracking_quality(replace(evidence(), covariance=free, view_constrains=True))
+    assert not q.degraded and not q.lost and q.value < QualityConfig().found_above
+    assert q.reason.startswith("degenerate view") and "the map does not hold enough of it yet" in q.reason
+    assert tracking_quality(replace(evidence(), covariance=free)).degraded  # the view itself leaves it free
+    why = "not placed by the keyframes yet since a view left the pose free along (+1.00, +0.00, +0.00) (3 frames)"
+    assert tracking_quality(replace(evidence(), covariance=free, view_constrains=True, unanchored=why)).degraded
+
+
 def test_a_map_that_disagrees_with_itself_caps_the_quality_without_degrading_the_view():
     from dataclasses import replace
 

@@ -30,25 +30,33 @@ CANDIDATES = 300  # normals tried as the dominant direction
 
 
 def depth_normals(depth: np.ndarray, intr: Intrinsics, step: int = 4) -> np.ndarray:
-    """Unit surface normals (N, 3), camera frame, sign arbitrary: on a grid of every `step`-th pixel, the cross
-    product of the back-projected neighbours `step` pixels left/right and above/below. Pixels whose neighbours are
-    missing or across a depth edge (more than 5 % + 1 cm apart) give none."""
+    """Unit surface normals (N, 3), camera frame, sign arbitrary (see `depth_points_and_normals`)."""
+    return depth_points_and_normals(depth, intr, step)[1]
+
+
+def depth_points_and_normals(depth: np.ndarray, intr: Intrinsics, step: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 3) and their unit surface normals (N, 3), camera frame, the normals' sign arbitrary: on a grid of
+    every `step`-th pixel, the cross product of the back-projected neighbours `step` pixels left/right and
+    above/below. Pixels whose neighbours are missing or across a depth edge (more than 5 % + 1 cm apart) give
+    none."""
     d = np.asarray(depth, dtype=np.float64)
     height, width = d.shape
-    v, u = np.mgrid[0:height, 0:width]
-    points = np.stack([(u - intr.cx) / intr.fx * d, (v - intr.cy) / intr.fy * d, d], axis=-1)
     rows, cols = np.arange(step, height - step, step), np.arange(step, width - step, step)
     r, c = np.meshgrid(rows, cols, indexing="ij")
-    around = [(r, c - step), (r, c + step), (r - step, c), (r + step, c)]
+
+    def point(rr: np.ndarray, cc: np.ndarray) -> np.ndarray:  # back-projected pixels (only those needed)
+        z = d[rr, cc]
+        return np.stack([(cc - intr.cx) / intr.fx * z, (rr - intr.cy) / intr.fy * z, z], axis=-1)
+
     z = d[r, c]
     valid = z > 0
-    for rr, cc in around:
+    for rr, cc in [(r, c - step), (r, c + step), (r - step, c), (r + step, c)]:
         valid &= (d[rr, cc] > 0) & (np.abs(d[rr, cc] - z) < 0.05 * z + 0.01)
-    across = points[r, c + step] - points[r, c - step]
-    down = points[r + step, c] - points[r - step, c]
+    across = point(r, c + step) - point(r, c - step)
+    down = point(r + step, c) - point(r - step, c)
     normals = np.cross(across, down)[valid]
     length = np.linalg.norm(normals, axis=1)
-    return normals[length > 0] / length[length > 0, None]
+    return point(r, c)[valid][length > 0], normals[length > 0] / length[length > 0, None]
 
 
 def dominant_direction(normals: np.ndarray, tolerance_deg: float = TOLERANCE_DEG,

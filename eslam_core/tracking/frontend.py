@@ -37,7 +37,7 @@ from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.map_frame import squared_first_pose
 from eslam_core.mapping.observed import ObservedSurfaces
 from eslam_core.representation.field import SceneField
-from eslam_core.tracking.information import PoseCovariance
+from eslam_core.tracking.information import UNCONSTRAINED_BELOW, PoseCovariance, view_information
 from eslam_core.tracking.map_check import MapCheck, widened
 from eslam_core.tracking.odometry import RGBDOdometry
 from eslam_core.tracking.places import KeyframePlaces
@@ -140,6 +140,9 @@ class TrackingFrontEnd:
         self.unanchored_for = 0  # frames since the run ended
         self.confirmations = 0  # relocalizations since then that confirmed the predicted motion
         self.odometry_predicted = False  # the newest prediction is the frame-to-frame odometry's motion
+        # The last frame's own view pinned its pose down where the map did not yet (quality.py: the map lacks the
+        # view): the odometry, which registers the frames, saw what the map lacks, and its motion is kept.
+        self.map_lacks_view = False
         self.fallback_pose = np.eye(4)
         self.odometry = None  # frame-to-frame odometry, its reference the last well-tracked frame
         if cfg.odometry.width > 0 and self.tracker is not None:
@@ -242,7 +245,8 @@ class TrackingFrontEnd:
             motion = self.odometry.motion(odometry_frame)
             if motion is not None:
                 self.odometry_predicted = not self.degraded_run
-                return self._held(prev @ motion, prev), gap, None if self.degraded_run else prev
+                return self._held(prev @ motion, prev), gap, \
+                    None if self.degraded_run or self.map_lacks_view else prev
         if not self.good:
             return prev, gap, None
         return self._held(self._velocity_prediction(trajectory, gap), prev), gap, None
@@ -308,6 +312,9 @@ class TrackingFrontEnd:
         if self.good and found is None:
             unexplained = pose[:3, 3].double().numpy() - self._velocity_prediction(trajectory, gap)[:3, 3]
         weak = weak_view(result.covariance, unexplained, self.cfg.quality) is not None
+        # (Only where the map leaves the pose free: the view's own information costs a millisecond.)
+        self.map_lacks_view = weak and view_information(pf.depth.cpu().numpy(), self.intr) >= UNCONSTRAINED_BELOW
+        weak = weak and not self.map_lacks_view
         confirmed = found is not None and agrees(found.pose, predicted)
         # The map-free odometry's motion from a well-tracked frame, and the map's pose agreeing with it: no jump.
         odometry_agrees = self.odometry_predicted and found is None and agrees(pose.double().numpy(), predicted)
@@ -317,7 +324,7 @@ class TrackingFrontEnd:
                                     typical_loss(self.recent_losses), 1.0 if found is not None else gap, self.lost,
                                     found is not None or self._prior_holds(pf), result.covariance,
                                     None if disagrees is None else disagrees.reason, unanchored, unexplained,
-                                    odometry_agrees)
+                                    odometry_agrees, self.map_lacks_view)
         quality = tracking_quality(evidence, self.cfg.quality)
         tracked = self._decided(len(trajectory), pose, init, result.loss, quality,
                                 None if found is None else found.keyframe_id, pf, odometry_frame)

@@ -21,9 +21,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
+from eslam_core.camera import Intrinsics
 from eslam_core.geometry import skew
+from eslam_core.mapping.map_frame import depth_points_and_normals
 
 # Independent points a frame's alignment is worth: set so that the position errors of tracked frames against the
 # truth are the size of the predicted standard deviations. `fast`, lock-step, median of error / sqrt(trace of the
@@ -50,6 +53,10 @@ WEAK_BELOW = 80.0
 # One frame's plausible motion (standard deviation, metres; a turn as the motion of a point at the median depth):
 # the prior that bounds a direction nothing constrains.
 PRIOR_SIGMA_M = 0.10
+# The depth is averaged over this many pixels square before its normals are taken (view_information): Kinect-like
+# noise scatters raw normals enough to fake a constraint (the synthetic ceiling meeting a wall: 60 along their edge
+# from raw normals, 3 from averaged ones; the generated flat's views 76-147 either way).
+VIEW_SMOOTHING_PX = 5
 
 
 @dataclass(frozen=True)
@@ -145,3 +152,22 @@ def covariance_at(covariance: np.ndarray, lever: np.ndarray) -> np.ndarray:
     A = np.eye(6)
     A[:3, 3:] = -skew(lever)
     return A @ np.asarray(covariance, dtype=np.float64) @ A.T
+
+
+def view_information(depth: np.ndarray, intr: Intrinsics) -> float:
+    """Information per residual, along the least constrained direction, that the frame's own geometry gives: each
+    point aligned to the plane of its own surface (point-to-plane, the residual per 1 cm, as the SDF tracker's), in
+    the units of UNCONSTRAINED_BELOW. What the view could pin down once the map holds it, where the tracker's
+    information is what the map holds of it: a view whose geometry leaves a direction free (a wall, two planes, a
+    corridor) is low in both, a view into space the map has not settled yet only in the tracker's."""
+    d = np.asarray(depth, dtype=np.float32)
+    valid = (d > 0).astype(np.float32)
+    k = (VIEW_SMOOTHING_PX, VIEW_SMOOTHING_PX)
+    total, count = cv2.boxFilter(d, -1, k, normalize=False), cv2.boxFilter(valid, -1, k, normalize=False)
+    smooth = np.where((count > 0.6 * VIEW_SMOOTHING_PX**2) & (d > 0), total / np.maximum(count, 1.0), 0.0)
+    points, normals = depth_points_and_normals(smooth, intr)
+    if len(points) < 50:
+        return 0.0
+    J = np.concatenate([normals, np.cross(points, normals)], axis=1) / 0.01
+    information, _, _ = constrained_directions(J.T @ J, len(J), np.zeros(3), float(np.median(points[:, 2])))
+    return float(information[0])

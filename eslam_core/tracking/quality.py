@@ -25,7 +25,13 @@ A tracked frame gives these pieces of evidence, each turned into a score in [0, 
   it makes no keyframe, and the reason names the free direction. A pose constrained in every direction is not
   degraded however wide its covariance (real depth noise: published, and mapped), unless a direction is only
   weakly constrained and the pose moved along it by over a centimetre beyond the constant velocity: that change
-  of motion is the odometry's guess (`weak_view`).
+  of motion is the odometry's guess (`weak_view`). Unless the view itself pins the pose down
+  (information.view_information, its own surfaces' information) and only the map does not yet: a camera walking
+  into a room sees floor, corner and furniture that settled space (observed.py) does not hold yet, and aligned to
+  the two walls it does hold, the pose is free along them. Such a frame is not degraded: its quality is capped
+  likewise, but it is mapped (else the map never learns the view, and the generated flat's camera walked on,
+  degraded for 150 frames, out of the map and was lost), and the odometry, which registered the whole view, keeps
+  its motion along the free direction.
 - anchor: after a run of frames whose view left a direction free, the pose may have slid along it, and a
   constrained view does not undo that: a local tracker started tens of centimetres off settles where the view fits
   the map well enough (the generated corridor: back on the furniture 21 cm off, every point on the map). Such a
@@ -70,6 +76,9 @@ class TrackingEvidence:
     # The pose agrees with the frame-to-frame odometry's motion from the last well-tracked frame (odometry.py: it
     # registers the frames, not the map): the camera moved as tracked, whatever the loss says.
     odometry_agrees: bool = False
+    # The frame's own geometry pins the pose down in every direction (information.view_information): a pose that
+    # the map leaves free lacks map, not view.
+    view_constrains: bool = False
 
 
 @dataclass(frozen=True)
@@ -132,7 +141,10 @@ def tracking_quality(e: TrackingEvidence, cfg: Optional[QualityConfig] = None) -
     weak = None if value < cfg.lost_below else weak_view(e.covariance, e.unexplained, cfg)
     if weak:
         value, why = min(value, DEGRADED_QUALITY), weak
-    degraded = bool(weak or e.unanchored) and not value < cfg.lost_below
+        if e.view_constrains:
+            why = (f"{weak}; the view itself pins the pose down: the map does not hold enough of it yet (mapped, "
+                   f"the odometry's motion kept)")
+    degraded = bool((weak and not e.view_constrains) or e.unanchored) and not value < cfg.lost_below
     lost = value < cfg.lost_below
     return Quality(value, why if value < cfg.found_above else "ok", lost, degraded)
 
