@@ -385,6 +385,8 @@ class RelocalizationConfig:
     # A camera that is not lost (its view left some direction free, or it waits to be anchored again) takes a
     # relocalization at most this far from its predicted position; one farther is another place that looks alike
     # (the generated corridor loop's corners: a jump of 6.5 m, every later pose wrong). A lost camera takes any.
+    # The map check, too, ignores a placement farther than this from the tracked pose (the generated flat's rooms
+    # share their furniture: keyframes placed 2-8 m away, turned 90-180 degrees).
     max_jump_m: float = 1.0
 
     def validate(self, check) -> None:

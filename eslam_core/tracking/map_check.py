@@ -7,7 +7,8 @@ a place mapped before the slide does: the features of the older keyframes place 
 relative to them, away from where it was tracked.
 
 So each keyframe, once indexed for relocalization, is placed by the features of keyframes at least
-`relocalization.map_check_gap` older (PnP, relocalization.py). The newest such placement is the map's check; the
+`relocalization.map_check_gap` older (PnP, relocalization.py), within `relocalization.max_jump_m` of where it was
+tracked (farther is another place that looks alike). The newest such placement is the map's check; the
 map disagrees with itself while it lies more than `map_disagree_m` or `map_disagree_deg` from the tracked pose, and
 until a later keyframe's placement agrees again the poses say so: their quality is capped, their covariance widened
 by the disagreement, the health and status report it. Moving the later part of the map back is loop closure's job.
@@ -48,12 +49,22 @@ def check_map(places, number: int, tracked: np.ndarray, intr: Intrinsics,
     if cfg.map_check_gap <= 0 or number < cfg.map_check_gap:
         return None
     found = yield from places.placing(number, intr, number - cfg.map_check_gap + 1)
-    if found is None:
+    return None if found is None else compared(number, found.keyframe_id, found.pose, tracked, cfg)
+
+
+def compared(number: int, by: int, placed: np.ndarray, tracked: np.ndarray, cfg: RelocalizationConfig
+             ) -> Optional[MapCheck]:
+    """Keyframe `number`, tracked at `tracked`, placed at `placed` by keyframe `by`'s features: the check, or None
+    where the place is farther than `relocalization.max_jump_m` from the tracked pose. That is another place that
+    looks alike, not a slide (as for a relocalization of a camera that is not lost): the generated flat's rooms
+    share their furniture, and its keyframes were placed 2-8 m away and turned 90-180 degrees, the map said to
+    disagree with itself every time."""
+    metres = float(np.linalg.norm(placed[:3, 3] - tracked[:3, 3]))
+    if metres > cfg.max_jump_m:
         return None
-    metres = float(np.linalg.norm(found.pose[:3, 3] - tracked[:3, 3]))
-    degrees = rotation_angle_deg(found.pose[:3, :3].T @ tracked[:3, :3])
-    return MapCheck(number, found.keyframe_id, metres, degrees,
-                    metres > cfg.map_disagree_m or degrees > cfg.map_disagree_deg, found.pose)
+    degrees = rotation_angle_deg(placed[:3, :3].T @ tracked[:3, :3])
+    return MapCheck(number, by, metres, degrees, metres > cfg.map_disagree_m or degrees > cfg.map_disagree_deg,
+                    placed)
 
 
 def widened(covariance: Optional[PoseCovariance], check: MapCheck) -> PoseCovariance:
