@@ -43,6 +43,7 @@ from eslam_core.tracking.odometry import RGBDOdometry
 from eslam_core.tracking.places import KeyframePlaces
 from eslam_core.tracking.quality import (RESIDUAL_WINDOW, Quality, TrackingEvidence, is_lost, tracking_quality,
                                          typical_loss, weak_view)
+from eslam_core.tracking.relocalization import plausible_jump
 from eslam_core.tracking.render_tracker import Tracker, constant_velocity, time_ratio
 from eslam_core.tracking.result import TrackingResult
 from eslam_core.tracking.sdf_tracker import SDFTracker
@@ -84,11 +85,6 @@ def agrees(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether two poses of a frame are the same within a tracker's basin (AGREE_M, AGREE_DEG)."""
     d = np.linalg.inv(a) @ b
     return float(np.linalg.norm(d[:3, 3])) < AGREE_M and rotation_angle_deg(d[:3, :3]) < AGREE_DEG
-
-
-def plausible_jump(found: np.ndarray, predicted: np.ndarray, max_jump_m: float) -> bool:
-    """Whether a relocalized pose is near enough to the predicted one to be the same place."""
-    return float(np.linalg.norm(np.asarray(found)[:3, 3] - np.asarray(predicted)[:3, 3])) <= max_jump_m
 
 
 def left_the_map(result: TrackingResult) -> bool:

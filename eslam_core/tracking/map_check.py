@@ -24,6 +24,7 @@ from eslam_core.camera import Intrinsics
 from eslam_core.config import RelocalizationConfig
 from eslam_core.geometry import rotation_angle_deg
 from eslam_core.tracking.information import PoseCovariance
+from eslam_core.tracking.relocalization import plausible_jump
 
 
 @dataclass(frozen=True)
@@ -59,9 +60,9 @@ def compared(number: int, by: int, placed: np.ndarray, tracked: np.ndarray, cfg:
     looks alike, not a slide (as for a relocalization of a camera that is not lost): the generated flat's rooms
     share their furniture, and its keyframes were placed 2-8 m away and turned 90-180 degrees, the map said to
     disagree with itself every time."""
-    metres = float(np.linalg.norm(placed[:3, 3] - tracked[:3, 3]))
-    if metres > cfg.max_jump_m:
+    if not plausible_jump(placed, tracked, cfg.max_jump_m):
         return None
+    metres = float(np.linalg.norm(placed[:3, 3] - tracked[:3, 3]))
     degrees = rotation_angle_deg(placed[:3, :3].T @ tracked[:3, :3])
     return MapCheck(number, by, metres, degrees, metres > cfg.map_disagree_m or degrees > cfg.map_disagree_deg,
                     placed)

@@ -473,3 +473,9 @@ def _checked_depth(depth: np.ndarray, shape: tuple[int, int], intr: Intrinsics) 
         raise RelocalizationError(f"depth {depth.shape}, colour {shape} and intrinsics {intr.height}x{intr.width} "
                                   f"(height x width) must be the same size; resize the frame or scale the intrinsics")
     return np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def plausible_jump(found: np.ndarray, expected: np.ndarray, max_jump_m: float) -> bool:
+    """Whether a pose found by the keyframes' features is near enough to where the camera is believed to be to be
+    the same place (`relocalization.max_jump_m`): farther is another place that looks alike."""
+    return float(np.linalg.norm(np.asarray(found)[:3, 3] - np.asarray(expected)[:3, 3])) <= max_jump_m
