@@ -185,7 +185,8 @@ def test_a_view_that_pins_the_pose_down_where_the_map_does_not_is_capped_but_map
     assert q.reason.startswith("degenerate view") and "the map does not hold enough of it yet" in q.reason
     assert tracking_quality(replace(evidence(), covariance=free)).degraded  # the view itself leaves it free
     why = "not placed by the keyframes yet since a view left the pose free along (+1.00, +0.00, +0.00) (3 frames)"
-    assert tracking_quality(replace(evidence(), covariance=free, view_constrains=True, unanchored=why)).degraded
+    unanchored = tracking_quality(replace(evidence(), covariance=free, view_constrains=True, unanchored=why))
+    assert unanchored.degraded and unanchored.reason == why  # not mapped, and not said to be
 
 
 def test_a_map_that_disagrees_with_itself_caps_the_quality_without_degrading_the_view():

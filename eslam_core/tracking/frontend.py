@@ -350,12 +350,20 @@ class TrackingFrontEnd:
         """For a frame whose view constrains the pose: why its pose may still be off along a direction that a run
         of earlier views left free (quality.py: unanchored), None where it is not. A run of RECHECK_AFTER such
         frames unanchors the pose (track); ANCHOR_CONFIRMATIONS relocalizations that confirm the motion predicted
-        from the frame before (`confirmed`), or ANCHOR_WAIT frames, anchor it again."""
+        from the frame before (`confirmed`), or ANCHOR_WAIT frames, anchor it again; so does a view that the map
+        lacks (the camera walked on into space that no keyframe holds: none can place it, and without mapping the
+        view leaves the map; the generated two-storey walk, past a pillar that filled the view for 20 frames, into
+        the room beyond, was lost there)."""
         if self.unanchored is None:
             return None
         self.confirmations += confirmed
         if self.confirmations >= ANCHOR_CONFIRMATIONS:
             log.info("frame %d: placed by the keyframes again after a view that left the pose free", index)
+            self.unanchored = None
+            return None
+        if self.map_lacks_view:
+            log.warning("frame %d: not placed by the keyframes after a view that left the pose free, and the map "
+                        "lacks this view; tracking and mapping go on from this pose", index)
             self.unanchored = None
             return None
         self.unanchored_for += 1

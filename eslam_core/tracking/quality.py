@@ -140,8 +140,10 @@ def tracking_quality(e: TrackingEvidence, cfg: Optional[QualityConfig] = None) -
     value, why = scores[name]
     weak = None if value < cfg.lost_below else weak_view(e.covariance, e.unexplained, cfg)
     if weak:
-        value, why = min(value, DEGRADED_QUALITY), weak
-        if e.view_constrains:
+        value = min(value, DEGRADED_QUALITY)
+        if not e.view_constrains:
+            why = weak
+        elif not e.unanchored:  # (an unanchored pose is not mapped: its own reason says why)
             why = (f"{weak}; the view itself pins the pose down: the map does not hold enough of it yet (mapped, "
                    f"the odometry's motion kept)")
     degraded = bool((weak and not e.view_constrains) or e.unanchored) and not value < cfg.lost_below
