@@ -43,6 +43,13 @@ CACHE = Path(os.environ.get("ESLAM_CACHE", Path.home() / ".cache" / "eslam")) / 
 SENSORS = {"kinect": SensorModel(), "ideal": SensorModel.ideal()}
 
 
+def revisit_to_corrected(summary: dict):
+    """Frames from the first loop's keyframe (the camera back where an older submap mapped) to the frame whose step
+    corrected the map with it; None without a loop."""
+    closures = summary.get("loop_closures") or []
+    return None if not closures else float(closures[0]["corrected"] - closures[0]["revisit"])
+
+
 def scene_folder(name: str, width: int, height: int, sensor: str = "kinect") -> Path:
     """The generated scene (once: later runs reuse it)."""
     if name == "room":
@@ -122,7 +129,8 @@ def main(argv=None) -> int:
                "completion_ratio_percent": mesh.get("completion_ratio_percent"),
                "map_mb": summary["parameter_count"] * 4 / 2**20, "peak_memory_mb": summary["peak_memory_mb"],
                "seconds_per_frame": summary["seconds_per_frame"], "submaps": summary.get("submaps", 1),
-               "loops": summary.get("loops_closed"), **quality_profile(out), "command": " ".join(command),
+               "loops": summary.get("loops_closed"), "revisit_to_corrected": revisit_to_corrected(summary),
+               **quality_profile(out), "command": " ".join(command),
                "wall_seconds": wall}
         rows.append(row)
         print(json.dumps({k: v for k, v in row.items() if k != "command"}), flush=True)
@@ -133,6 +141,7 @@ def main(argv=None) -> int:
 
     header = ["scene", "frames", "path (m)", "ATE (cm)", "end drift (cm)", "accuracy (cm)", "completion (cm)",
               "completion < 5 cm (%)", "planes (MB)", "peak memory (MB)", "s / frame", "submaps", "loops",
+              "revisit to corrected (frames)",
               "lost (%)", "degraded (%)", "first lost", "longest degraded run"]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     for r in rows:
@@ -142,6 +151,7 @@ def main(argv=None) -> int:
                                         cell(r["map_mb"], 1), cell(r["peak_memory_mb"], 0),
                                         cell(r["seconds_per_frame"], 3), str(r["submaps"]),
                                         "–" if r["loops"] is None else str(r["loops"]),
+                                        cell(r["revisit_to_corrected"], 0),
                                         cell(r["lost_percent"], 1), cell(r["degraded_percent"], 1),
                                         "–" if r["first_lost"] is None else str(r["first_lost"]),
                                         str(r["longest_degraded_run"])]) + " |")

@@ -12,7 +12,7 @@ import logging
 import signal
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Optional
 
@@ -146,6 +146,7 @@ def write_outputs(cfg: Config, slam: SLAM, dataset: RGBDDataset, out_dir: Path, 
         "parameter_count": sum(s.field.parameter_count() for s in slam.atlas.submaps if s.field is not None),
         "keyframes": slam.trajectory.keyframes,
         **slam.atlas.memory(),  # (summed over the submaps; their count and the loops closed)
+        "loop_closures": [asdict(c) for c in slam.atlas.closures],
         "keyframe_memory_mb": sum(s.keyframes.nbytes() for s in slam.atlas.submaps) / 2**20,
         "truncation": cfg.model.truncation,
         "bound": None if slam.map.extent is None else np.round(slam.map.extent, 4).tolist(),

@@ -75,17 +75,20 @@ class SLAM:
             step = self.map.warm_up(self.after_mapping_iteration)
             return StepResult(pf.index, self.trajectory.pose(n), 0.0, True, step.loss, {}, 1.0, False, True)
         tracked = self.tracking.step(pf, self.map)
-        mapping_loss, refined = float("nan"), {}
+        mapping_loss, refined, dropped = float("nan"), {}, ()
         if tracked.keyframe_due:
             kf = self.tracking.new_keyframe(pf, tracked)
             self.tracking.remember(kf)
             step, sub = self._map_keyframe(kf, pf)
             refined = self.atlas.to_world(sub, step.refined)
-            for check in self.tracking.take_checks():  # keyframes placed by other submaps': loops
-                refined.update(self.atlas.close_loop(check))
             dropped = tuple(n for n in sub.keyframes.take_dropped() if self.atlas.owns(sub, n))
-            self.tracking.apply(PoseCorrections(refined, dropped))
             mapping_loss = step.loss
+        # Keyframes placed by other submaps' (loops), as soon as a check ends: also on a frame that made no keyframe
+        # (a relocalization checks every waiting keyframe first; a lost camera makes none).
+        for check in self.tracking.take_checks():
+            refined.update(self.atlas.close_loop(check, pf.index))
+        if refined or dropped:
+            self.tracking.apply(PoseCorrections(refined, dropped))
         pose = tracked.pose
         return StepResult(pf.index, self.trajectory.pose(n), pose.loss, pose.keyframe, mapping_loss, refined,
                           pose.quality.value, pose.lost, tracked.anchor, pose.covariance_matrix,

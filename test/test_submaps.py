@@ -116,8 +116,11 @@ def test_a_loop_between_submaps_moves_the_later_ones_rigidly_toward_it(mapped):
     atlas = slam.atlas
     check = loop_check(atlas, 0.04)
     anchors = [atlas.anchor(s).copy() for s in atlas.submaps]
-    corrections = atlas.close_loop(check)
+    corrections = atlas.close_loop(check, frame=149)
     assert atlas.loops == 1
+    closure = atlas.closures[0]  # reported in summary.json: when the place was revisited and the map corrected
+    assert (closure.keyframe, closure.by, closure.corrected) == (check.keyframe, check.by, 149)
+    assert closure.revisit == atlas.submaps[-1].keyframes[0].frame_index
     moved = [atlas.anchor(s)[0, 3] - a[0, 3] for s, a in zip(atlas.submaps, anchors)]
     assert moved[0] == 0.0  # the world's submap stays put
     assert 0.01 < moved[-1] <= 0.04 + 1e-6  # toward the loop, as far as the odometry's drift allows
@@ -135,7 +138,7 @@ def test_a_wrong_loop_between_submaps_does_not_move_the_map(mapped):
     atlas = slam.atlas
     anchors = [atlas.anchor(s).copy() for s in atlas.submaps]
     assert atlas.close_loop(loop_check(atlas, 0.9, turn_deg=30.0)) == {}  # another place, 0.9 m away
-    assert atlas.loops == 0
+    assert atlas.loops == 0 and atlas.closures == []
     for sub, before in zip(atlas.submaps, anchors):
         assert np.linalg.norm(atlas.anchor(sub)[:3, 3] - before[:3, 3]) < 0.01
 

@@ -22,7 +22,7 @@ corrections that the trajectory, relocalization and the outputs follow (Tracking
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Optional
 
 import numpy as np
@@ -42,6 +42,18 @@ log = logging.getLogger("eslam")
 LOOP_SIGMA_M, LOOP_SIGMA_DEG = 0.03, 2.0
 # The keyframes a new submap shares with the one the camera leaves (Atlas.overlap).
 OVERLAP_KEYFRAMES = 3
+
+
+@dataclass(frozen=True)
+class LoopClosure:
+    """A loop the graph kept: keyframe `keyframe` (made at frame `revisit`) placed by keyframe `by` of another
+    submap, `metres` / `degrees` from where it was tracked; the map corrected at frame `corrected`."""
+    keyframe: int
+    by: int
+    metres: float
+    degrees: float
+    revisit: int
+    corrected: int
 
 
 def information(sigma_m: float, sigma_deg: float) -> np.ndarray:
@@ -65,6 +77,7 @@ class Atlas:
         self.owner: dict[int, int] = {}  # keyframe number -> its submap's number
         self.graph = PoseGraph()
         self.loops = 0  # loop edges the graph kept
+        self.closures: list[LoopClosure] = []  # each loop as it was closed (a later solve may refuse it)
 
     @property
     def started(self) -> bool:
@@ -154,10 +167,10 @@ class Atlas:
         i = None if sub is None else sub.keyframes.position(number)
         return None if i is None else self.anchor(sub) @ sub.keyframes[i].pose.double().numpy()
 
-    def close_loop(self, check: MapCheck) -> dict:
+    def close_loop(self, check: MapCheck, frame: int = -1) -> dict:
         """A keyframe placed by another submap's keyframe (`check`) as a loop edge: the graph solved and the
-        submaps moved. Returns the corrections (keyframe number -> world pose), empty where the check is no loop
-        (the same submap) or the graph refused it."""
+        submaps moved, at frame `frame`. Returns the corrections (keyframe number -> world pose), empty where the
+        check is no loop (the same submap) or the graph refused it."""
         if not self.cfg.submaps.loop_closure or check.placed is None:
             return {}
         i, j = self.owner.get(check.by), self.owner.get(check.keyframe)
@@ -174,6 +187,9 @@ class Atlas:
                      "graph)", check.keyframe, check.by, j, i)
             return {}
         self.loops = sum(e.loop for e in self.graph.edges) - len(solution.rejected)
+        kf = self.submaps[j].keyframes[self.submaps[j].keyframes.position(check.keyframe)]
+        self.closures.append(LoopClosure(check.keyframe, check.by, check.metres, check.degrees, kf.frame_index,
+                                         frame))
         self.graph.initial.update(solution.poses)  # (the next solve starts from here)
         corrections = {}
         for sub in self.submaps:

@@ -208,6 +208,8 @@ def word_histogram(word_ids: np.ndarray, idf: np.ndarray) -> np.ndarray:
 
 # ------------------------------------------------------------------------------------------------ database
 
+NEARBY_VIEW_DEG = 45.0  # a keyframe near the camera that looks within this of its way sees much of what it sees
+
 @dataclass
 class KeyframeEntry:
     """A keyframe as the index stores it (a pickle of it is what the mapping process sends the tracker's replica)."""
@@ -343,7 +345,22 @@ class KeyframeDatabase:
         self.build_vocabulary()
         query = _Query(entry.keypoints, entry.descriptors, entry.points_cam[:, 2], entry.thumbnail,
                        self._histograms.get(entry.keyframe_id))
-        return (yield from self._best_steps(query, self.candidates(query, older), intr))
+        candidates = list(dict.fromkeys(self.nearby(entry.pose, older) + self.candidates(query, older)))
+        return (yield from self._best_steps(query, candidates, intr))
+
+    def nearby(self, pose: np.ndarray, among: list[int]) -> list[int]:
+        """The `candidates` keyframes of `among` nearest to `pose` (4x4) that look the same way (optical axes within
+        NEARBY_VIEW_DEG) and lie within `max_jump_m`, nearest first: where a keyframe made on the camera's return
+        should find the place it returns to. Appearance alone ranks look-alike places first where the scene repeats
+        itself (the generated corridor loop's furniture: on the return to where the walk began, none of the first
+        keyframes was among the best three of either ranking, and no loop was found)."""
+        near = []
+        for i in among:
+            other = self.entries[i].pose
+            metres = float(np.linalg.norm(other[:3, 3] - pose[:3, 3]))
+            if metres <= self.cfg.max_jump_m and other[:3, 2] @ pose[:3, 2] >= np.cos(np.radians(NEARBY_VIEW_DEG)):
+                near.append((metres, i))
+        return [i for _, i in sorted(near)[:self.cfg.candidates]]
 
     def _best(self, query: _Query, candidates: list[int], intr: Intrinsics) -> Optional[Relocalization]:
         """The candidate keyframe giving the most inliers, verified in order until one gives `enough_inliers`."""
