@@ -5,15 +5,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from eslam_core.camera import Frame
 from eslam_core.config import ConfigError, load_config
 from eslam_core.datasets import open_dataset
 from eslam_core.datasets.synthetic import generate_scene
 from eslam_core.demo import mesh_scores
+from eslam_core.map_file import read_checkpoint
 from eslam_core.outputs.export import submap_mesh
 from eslam_core.outputs.mesh import save_ply
-from eslam_core.slam import SLAM
+from eslam_core.slam import CHECKPOINT_VERSION, SLAM
 from eslam_core.tracking.map_check import MapCheck
 from eslam_core.tracking.session import PoseCorrections
 
@@ -111,7 +113,7 @@ def loop_check(atlas, shift_m: float, turn_deg: float = 0.0):
     return MapCheck(keyframe, by, shift_m, turn_deg, disagrees=True, placed=placed)
 
 
-def test_a_loop_between_submaps_moves_the_later_ones_rigidly_toward_it(mapped):
+def test_a_loop_between_submaps_moves_the_later_ones_rigidly_toward_it(mapped, tmp_path):
     slam = SLAM.from_state_dict(mapped.state_dict())
     atlas = slam.atlas
     check = loop_check(atlas, 0.04)
@@ -121,6 +123,9 @@ def test_a_loop_between_submaps_moves_the_later_ones_rigidly_toward_it(mapped):
     closure = atlas.closures[0]  # reported in summary.json: when the place was revisited and the map corrected
     assert (closure.keyframe, closure.by, closure.corrected) == (check.keyframe, check.by, 149)
     assert closure.revisit == atlas.submaps[-1].keyframes[0].frame_index
+    torch.save(slam.state_dict(), tmp_path / "checkpoint.pt")  # a checkpoint keeps the loops closed
+    loaded = SLAM.from_state_dict(read_checkpoint(tmp_path / "checkpoint.pt", CHECKPOINT_VERSION)).atlas
+    assert loaded.loops == 1 and loaded.closures == atlas.closures
     moved = [atlas.anchor(s)[0, 3] - a[0, 3] for s, a in zip(atlas.submaps, anchors)]
     assert moved[0] == 0.0  # the world's submap stays put
     assert 0.01 < moved[-1] <= 0.04 + 1e-6  # toward the loop, as far as the odometry's drift allows

@@ -22,7 +22,7 @@ corrections that the trajectory, relocalization and the outputs follow (Tracking
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Optional
 
 import numpy as np
@@ -188,8 +188,8 @@ class Atlas:
             return {}
         self.loops = sum(e.loop for e in self.graph.edges) - len(solution.rejected)
         kf = self.submaps[j].keyframes[self.submaps[j].keyframes.position(check.keyframe)]
-        self.closures.append(LoopClosure(check.keyframe, check.by, check.metres, check.degrees, kf.frame_index,
-                                         frame))
+        self.closures.append(LoopClosure(int(check.keyframe), int(check.by), float(check.metres),
+                                         float(check.degrees), int(kf.frame_index), int(frame)))
         self.graph.initial.update(solution.poses)  # (the next solve starts from here)
         corrections = {}
         for sub in self.submaps:
@@ -217,7 +217,8 @@ class Atlas:
                 "owner": dict(self.owner),
                 "edges": [{"a": e.a, "b": e.b, "T_ab": torch.from_numpy(e.T_ab),
                            "information": torch.from_numpy(e.information), "loop": e.loop}
-                          for e in self.graph.edges]}
+                          for e in self.graph.edges],
+                "loops": self.loops, "closures": [asdict(c) for c in self.closures]}
 
     def load_single_map(self, state: dict) -> None:
         """A checkpoint of one map (no submaps): it is the first submap, every keyframe its own."""
@@ -235,4 +236,6 @@ class Atlas:
         for e in state["edges"]:
             self.graph.add_edge(e["a"], e["b"], e["T_ab"].numpy(), e["information"].numpy(), e["loop"])
         self.owner = {int(k): int(v) for k, v in state["owner"].items()}
+        self.loops = int(state.get("loops", 0))
+        self.closures = [LoopClosure(**c) for c in state.get("closures", [])]
         self.active = None if state["active"] is None else self.submaps[state["active"]]
