@@ -155,7 +155,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="1: lock-step in this process (default); 2: a tracking and a mapping process in parallel")
     r.add_argument("--policy", choices=("offline", "live"), default="offline",
                    help="offline: every frame in order (default); live: frames fed at the data set's frame rate, "
-                        "the tracker skips to the newest when behind (dropped frames are counted)")
+                        "the tracker skips to the newest when more than runtime.live_backlog (1) frame behind "
+                        "(dropped frames are counted)")
     r.add_argument("--catch-up-iterations", type=int, default=None, metavar="N",
                    help="--workers 2: once newer keyframes wait, a mapping step ends after N iterations divided by "
                         "their number, so that the mapper keeps up with the tracker (default: every step runs all "

@@ -421,6 +421,10 @@ class RuntimeConfig:
     """Tuning of the runtimes (eslam_core/runtime): how `eslam run --workers 2` and the ROS node run SLAM."""
 
     capacity: int = 8  # frames in the input buffer
+    # Live policy: frames that may wait behind the one the tracker takes before it skips to the newest (0: always
+    # the newest). With 1, a frame that one spike of work made late is tracked a frame period later instead of
+    # dropped (README, "Maps without edges, and memory that stays flat": the hour live).
+    live_backlog: int = 1
     # Offline runs through the runtime (`eslam run --workers 2`): frames decoded ahead, beyond the input buffer, by
     # a thread that only gets CPU time no other work wants (datasets/read_ahead.py; 0 = none). About 2 MB a
     # 640 x 480 frame. `fast` on the 300 ICL office frames, runs alternating (README, session 20): 21.8-26.9
@@ -460,6 +464,8 @@ class RuntimeConfig:
 
     def validate(self, check) -> None:
         check(self.capacity >= 1, "runtime.capacity", "must be >= 1")
+        check(0 <= self.live_backlog < self.capacity, "runtime.live_backlog",
+              f"must be >= 0 frames and below runtime.capacity ({self.capacity})")
         check(self.read_ahead >= 0, "runtime.read_ahead", "must be >= 0 frames (0 = no read-ahead)")
         check(self.publish_every >= 0, "runtime.publish_every", "must be >= 0 (0 = only after each step)")
         check(self.keyframe_backlog is None or self.keyframe_backlog >= 0, "runtime.keyframe_backlog",

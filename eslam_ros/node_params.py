@@ -66,7 +66,9 @@ class NodeSettings:
                                                            "directory)")
     workers: int = _param(2, "workers", "SLAM runtime processes: 2 = tracking and mapping in parallel processes, "
                                         "1 = in-process")
-    policy: str = _param("live", "policy", "live: track the newest frame, drop (and count) frames while busy; "
+    policy: str = _param("live", "policy", "live: track the oldest waiting frame while at most "
+                                           "`runtime.live_backlog` (1) more wait, else skip to the newest, dropping "
+                                           "(and counting) the others; "
                                            "offline: every frame in order (the node stops taking messages while "
                                            "SLAM is behind: use input_qos reliable and a deep input_queue_depth)")
     input_qos: str = _param("sensor_data", "input_qos", "QoS of the input subscriptions: sensor_data (best effort, "

@@ -59,6 +59,12 @@ def test_negative_truncation(tmp_path):
         load_config(write(tmp_path, "model: {truncation: -0.06}\n"))
 
 
+def test_a_live_backlog_the_input_buffer_cannot_hold(tmp_path):
+    with pytest.raises(ConfigError, match=r"runtime\.live_backlog.*below runtime\.capacity \(8\)"):
+        load_config(write(tmp_path, "runtime: {live_backlog: 8}\n"))
+    assert load_config("live").runtime.live_backlog == 1
+
+
 def test_odometry_width_too_small_for_its_pyramid(tmp_path):
     with pytest.raises(ConfigError, match=r"odometry\.width.*0 \(off\) or at least 64"):
         load_config(write(tmp_path, "odometry: {width: 32}\n"))

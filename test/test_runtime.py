@@ -33,7 +33,7 @@ from eslam_core.mapping.scene_map import SceneMap, initial_extent
 from eslam_core.tracking.session import new_keyframe
 from eslam_core.trajectory import FrameRecord, TrackedTrajectory
 from eslam_core.runtime import RuntimeCrashed, RuntimeSetupError, make_runtime
-from eslam_core.runtime.api import RateMeter
+from eslam_core.runtime.api import RateMeter, frames_to_skip
 from eslam_core.runtime.budget import MappingBudget
 from eslam_core.runtime.multiprocess import snapshot_directory
 from eslam_core.runtime import workers
@@ -529,6 +529,23 @@ def test_frame_ring_offline_and_live():
     _ring_frame(ring, 5, live=False)
     ring.close_input()
     assert not ring.drained() and ring.take(live=False, timeout=0.1)[0].index == 5 and ring.drained()
+
+
+def test_a_live_tracker_takes_the_oldest_frame_while_at_most_the_backlog_waits_behind_it():
+    assert [frames_to_skip(n, live=True, backlog=1) for n in (1, 2, 3, 5)] == [0, 0, 2, 4]
+    assert [frames_to_skip(n, live=True, backlog=0) for n in (1, 2, 3)] == [0, 1, 2]  # always the newest
+    assert frames_to_skip(5, live=False, backlog=0) == 0  # offline: every frame in order
+    import torch.multiprocessing as tmp
+
+    ring = FrameRing(4, 4, 5, tmp.get_context("spawn"))
+    for i in range(2):
+        _ring_frame(ring, i, live=True)
+    frame, skipped = ring.take(live=True, timeout=0.1, backlog=1)  # one frame late: caught up, none lost
+    assert (frame.index, skipped, ring.pending()) == (0, 0, 1)
+    for i in range(2, 4):
+        _ring_frame(ring, i, live=True)
+    frame, skipped = ring.take(live=True, timeout=0.1, backlog=1)  # two behind it: the newest
+    assert (frame.index, skipped, ring.pending()) == (3, 2, 0)
 
 
 def test_shared_map_double_buffer():

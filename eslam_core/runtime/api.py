@@ -9,8 +9,9 @@ trajectory, a checkpoint or a mesh of the map so far. Two implementations share 
 Input policies decide what happens when frames arrive faster than they can be tracked:
 
 - "offline": every frame is processed, in order; `submit` blocks while the input buffer is full.
-- "live": `submit` never blocks; a full buffer loses its oldest pending frame, and the tracker always takes the
-  newest pending frame, skipping the older ones. Every frame lost either way is counted in `Health.frames_dropped`.
+- "live": `submit` never blocks; a full buffer loses its oldest pending frame, and the tracker takes the oldest
+  pending frame while at most `runtime.live_backlog` more wait behind it, else the newest, skipping the older ones
+  (`frames_to_skip`). Every frame lost either way is counted in `Health.frames_dropped`.
 """
 from __future__ import annotations
 
@@ -139,6 +140,14 @@ class SLAMRuntime(Protocol):
 def peak_rss_mb() -> float:
     """Peak resident memory of this process (ru_maxrss is KiB on Linux)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def frames_to_skip(pending: int, live: bool, backlog: int) -> int:
+    """Of `pending` frames, how many the tracker skips before the one it takes: none offline, or live while at
+    most `backlog` wait behind the oldest; else all but the newest. A live tracker with a few milliseconds of slack
+    a frame that one frame's extra work (a keyframe handed over, a new map folded) made late catches up over the
+    next frames instead of losing one; each frame that waited is a frame period later."""
+    return pending - 1 if live and pending - 1 > backlog else 0
 
 
 def check_policy(policy: str) -> str:

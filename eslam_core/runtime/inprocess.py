@@ -30,7 +30,7 @@ from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
 from eslam_core.runtime.mesher import snapshot_for_meshing
 from eslam_core.runtime.api import Health, PoseUpdate, RuntimeCrashed, RuntimeSetupError, check_frame, check_policy, \
-    peak_rss_mb
+    frames_to_skip, peak_rss_mb
 from eslam_core.runtime.parent_state import ParentState
 
 log = logging.getLogger("eslam")
@@ -224,10 +224,10 @@ class InProcessRuntime(SavingMixin):
                 self._cond.wait()
             if self._stop_now or not self._inputs:
                 return None
-            if self.policy == "live" and len(self._inputs) > 1:  # behind: skip to the newest frame
-                self._counts["dropped"] += len(self._inputs) - 1
-                while len(self._inputs) > 1:
-                    self._inputs.popleft()
+            skip = frames_to_skip(len(self._inputs), self.policy == "live", self.slam.cfg.runtime.live_backlog)
+            self._counts["dropped"] += skip
+            for _ in range(skip):
+                self._inputs.popleft()
             item = self._inputs.popleft()
             self._cond.notify_all()
             return item

@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from eslam_core.device import synchronize
+from eslam_core.runtime.api import frames_to_skip
 
 
 class SharedMemoryError(RuntimeError):
@@ -111,16 +112,16 @@ class FrameRing:
             self.cond.notify_all()
         return True, evicted
 
-    def take(self, live: bool, timeout: float) -> tuple[Optional[RingFrame], int]:
-        """The next frame (offline: the oldest pending; live: the newest, skipping older ones) and how many frames
-        were skipped; (None, 0) when nothing arrived within `timeout` s or the input is closed and empty."""
+    def take(self, live: bool, timeout: float, backlog: int = 0) -> tuple[Optional[RingFrame], int]:
+        """The next frame (offline: the oldest pending; live: see api.frames_to_skip) and how many frames were
+        skipped; (None, 0) when nothing arrived within `timeout` s or the input is closed and empty."""
         with self.cond:
             if not self.cond.wait_for(lambda: self._pending() > 0 or bool(self.counts[self.CLOSED]), timeout):
                 return None, 0
             pending = self._pending()
             if pending <= 0:
                 return None, 0
-            skipped = pending - 1 if live else 0
+            skipped = frames_to_skip(pending, live, backlog)
             taken = int(self.counts[self.TAKEN]) + skipped
             slot = taken % self.capacity
             frame = RingFrame(

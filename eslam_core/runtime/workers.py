@@ -409,7 +409,7 @@ class TrackerWorker:
                 self._finish()
                 continue
             waiting = self.session.idle_work  # keyframes to index for relocalization, map checks
-            frame, skipped = self.ch.ring.take(self.live, 0.0 if waiting else POLL_S)
+            frame, skipped = self.ch.ring.take(self.live, 0.0 if waiting else POLL_S, self.cfg.runtime.live_backlog)
             if skipped:
                 self.ch.board.add(Counter.DROPPED_BY_TRACKER, skipped)
             if frame is None:
