@@ -224,7 +224,7 @@ class InProcessRuntime(SavingMixin):
                 self._cond.wait()
             if self._stop_now or not self._inputs:
                 return None
-            skip = frames_to_skip(len(self._inputs), self.policy == "live", self.slam.cfg.runtime.live_backlog)
+            skip = frames_to_skip(len(self._inputs), self.policy == "live", self.cfg.runtime.live_backlog)
             self._counts["dropped"] += skip
             for _ in range(skip):
                 self._inputs.popleft()

@@ -210,6 +210,7 @@ def word_histogram(word_ids: np.ndarray, idf: np.ndarray) -> np.ndarray:
 
 NEARBY_VIEW_DEG = 45.0  # a keyframe near the camera that looks within this of its way sees much of what it sees
 
+
 @dataclass
 class KeyframeEntry:
     """A keyframe as the index stores it (a pickle of it is what the mapping process sends the tracker's replica)."""
@@ -354,11 +355,12 @@ class KeyframeDatabase:
         should find the place it returns to. Appearance alone ranks look-alike places first where the scene repeats
         itself (the generated corridor loop's furniture: on the return to where the walk began, none of the first
         keyframes was among the best three of either ranking, and no loop was found)."""
+        same_way = math.cos(math.radians(NEARBY_VIEW_DEG))
         near = []
         for i in among:
             other = self.entries[i].pose
             metres = float(np.linalg.norm(other[:3, 3] - pose[:3, 3]))
-            if metres <= self.cfg.max_jump_m and other[:3, 2] @ pose[:3, 2] >= np.cos(np.radians(NEARBY_VIEW_DEG)):
+            if metres <= self.cfg.max_jump_m and other[:3, 2] @ pose[:3, 2] >= same_way:
                 near.append((metres, i))
         return [i for _, i in sorted(near)[:self.cfg.candidates]]
 
