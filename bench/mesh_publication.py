@@ -98,7 +98,7 @@ def main() -> int:
     _, start_ms, _ = timed(mesher.start)
     print(f"now ({args.block_size} m blocks, {args.budget} s per job, nice 19); mesh process started in "
           f"{start_ms:.0f} ms")
-    snapshot, snap_ms, snap_cpu = timed(lambda: snapshot_for_meshing(slam.map, mesher.have()))
+    snapshot, snap_ms, snap_cpu = timed(lambda: snapshot_for_meshing(slam.atlas, mesher.have()))
     print(f"  first snapshot for the mesh process: {snap_ms:.0f} ms in the node ({len(snapshot.field) / 1e6:.1f} MB "
           f"field, {len(snapshot.new_depths)} depth images)")
     first = run_jobs(mesher, snapshot, "first")
@@ -108,7 +108,7 @@ def main() -> int:
 
     for i in range(args.frames, args.frames + args.more):
         slam.step(data[i])
-    snapshot, snap_ms, _ = timed(lambda: snapshot_for_meshing(slam.map, mesher.have()))
+    snapshot, snap_ms, _ = timed(lambda: snapshot_for_meshing(slam.atlas, mesher.have()))
     update = run_jobs(mesher, snapshot, "update")
     print(f"  update after {args.more} more frames ({len(slam.map.keyframes)} keyframes): node {snap_ms:.0f} ms "
           f"snapshot ({len(snapshot.new_depths)} new depth images) + {update['write_ms']:.1f} ms writing "

@@ -43,11 +43,14 @@ CACHE = Path(os.environ.get("ESLAM_CACHE", Path.home() / ".cache" / "eslam")) / 
 SENSORS = {"kinect": SensorModel(), "ideal": SensorModel.ideal()}
 
 
-def revisit_to_corrected(summary: dict):
-    """Frames from the first loop's keyframe (the camera back where an older submap mapped) to the frame whose step
-    corrected the map with it; None without a loop."""
+def revisit_to_corrected(summary: dict) -> tuple:
+    """Frames and seconds of input from the first loop's keyframe (the camera back where an older submap mapped)
+    to the frame that first had the map corrected by it; Nones without a loop."""
     closures = summary.get("loop_closures") or []
-    return None if not closures else float(closures[0]["corrected"] - closures[0]["revisit"])
+    if not closures:
+        return None, None
+    first = closures[0]
+    return float(first["corrected"] - first["revisit"]), first.get("seconds")
 
 
 def scene_folder(name: str, width: int, height: int, sensor: str = "kinect") -> Path:
@@ -129,7 +132,8 @@ def main(argv=None) -> int:
                "completion_ratio_percent": mesh.get("completion_ratio_percent"),
                "map_mb": summary["parameter_count"] * 4 / 2**20, "peak_memory_mb": summary["peak_memory_mb"],
                "seconds_per_frame": summary["seconds_per_frame"], "submaps": summary.get("submaps", 1),
-               "loops": summary.get("loops_closed"), "revisit_to_corrected": revisit_to_corrected(summary),
+               "loops": summary.get("loops_closed"), "revisit_to_corrected": revisit_to_corrected(summary)[0],
+               "revisit_to_corrected_s": revisit_to_corrected(summary)[1],
                **quality_profile(out), "command": " ".join(command),
                "wall_seconds": wall}
         rows.append(row)
@@ -141,7 +145,7 @@ def main(argv=None) -> int:
 
     header = ["scene", "frames", "path (m)", "ATE (cm)", "end drift (cm)", "accuracy (cm)", "completion (cm)",
               "completion < 5 cm (%)", "planes (MB)", "peak memory (MB)", "s / frame", "submaps", "loops",
-              "revisit to corrected (frames)",
+              "revisit to corrected (frames / s)",
               "lost (%)", "degraded (%)", "first lost", "longest degraded run"]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     for r in rows:
@@ -151,7 +155,8 @@ def main(argv=None) -> int:
                                         cell(r["map_mb"], 1), cell(r["peak_memory_mb"], 0),
                                         cell(r["seconds_per_frame"], 3), str(r["submaps"]),
                                         "–" if r["loops"] is None else str(r["loops"]),
-                                        cell(r["revisit_to_corrected"], 0),
+                                        cell(r["revisit_to_corrected"], 0) + " / " +
+                                        cell(r["revisit_to_corrected_s"], 2),
                                         cell(r["lost_percent"], 1), cell(r["degraded_percent"], 1),
                                         "–" if r["first_lost"] is None else str(r["first_lost"]),
                                         str(r["longest_degraded_run"])]) + " |")

@@ -101,6 +101,11 @@ def check_compatible(state: dict, cfg: Config, intrinsics: Optional[Intrinsics],
         raise CheckpointError(f"{path} holds keyframes at camera.image_scale {saved.camera.image_scale}, this "
                               f"configuration has {cfg.camera.image_scale}; set camera.image_scale to "
                               f"{saved.camera.image_scale} to use this map")
+    if saved.submaps.radius_m != cfg.submaps.radius_m:  # (each runtime builds its submaps by its own config)
+        made = f"submaps of {saved.submaps.radius_m:g} m" if saved.submaps.radius_m > 0 else "one map"
+        raise CheckpointError(f"{path} was made as {made}, this configuration has submaps.radius_m "
+                              f"{cfg.submaps.radius_m:g}; set submaps.radius_m to {saved.submaps.radius_m:g} to use "
+                              f"this map")
     if intrinsics is not None and saved_intrinsics != intrinsics:
         raise CheckpointError(f"{path} was made for camera {_camera(saved_intrinsics)}, these frames come from "
                               f"{_camera(intrinsics)}; use that camera, or make a map with this one")

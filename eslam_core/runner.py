@@ -133,6 +133,7 @@ def write_outputs(cfg: Config, slam: SLAM, dataset: RGBDDataset, out_dir: Path, 
             log.error("no mesh written: %s", e)
 
     rmse = ate_cm(slam)
+    outside = sum(s.points_outside for s in slam.atlas.submaps)
     summary = {
         "data": data_label or str(dataset.root),
         "dataset_kind": dataset.kind,
@@ -149,9 +150,9 @@ def write_outputs(cfg: Config, slam: SLAM, dataset: RGBDDataset, out_dir: Path, 
         "loop_closures": [asdict(c) for c in slam.atlas.closures],
         "keyframe_memory_mb": sum(s.keyframes.nbytes() for s in slam.atlas.submaps) / 2**20,
         "truncation": cfg.model.truncation,
-        "bound": None if slam.map.extent is None else np.round(slam.map.extent, 4).tolist(),
-        "points_outside_bound": slam.map.points_outside,
-        "points_outside_fraction": slam.map.points_outside / max(slam.map.points_seen, 1),
+        "bound": None if slam.map.extent is None else np.round(slam.map.extent, 4).tolist(),  # (the active submap's)
+        "points_outside_bound": outside,
+        "points_outside_fraction": outside / max(sum(s.points_seen for s in slam.atlas.submaps), 1),
         "ate_rmse_cm": rmse,
         **tracking_summary(slam.trajectory),
         "config_file": str(out_dir / "config.yaml"),

@@ -17,8 +17,8 @@ from eslam_core.config import Config, config_from_dict
 from eslam_core.cpu import keep_freed_memory
 from eslam_core.frames import pixel_directions_table, prepare_frame, working_intrinsics
 from eslam_core.map_file import check_compatible, read_checkpoint
-from eslam_core.mapping.scene_map import MappingStep, SceneMap, initial_extent
-from eslam_core.submaps.atlas import Atlas, anchored_at
+from eslam_core.mapping.scene_map import MappingStep, SceneMap
+from eslam_core.submaps.atlas import Atlas
 from eslam_core.tracking.session import PoseCorrections, TrackingSession
 from eslam_core.trajectory import TrackedTrajectory
 
@@ -79,37 +79,28 @@ class SLAM:
         if tracked.keyframe_due:
             kf = self.tracking.new_keyframe(pf, tracked)
             self.tracking.remember(kf)
-            step, sub = self._map_keyframe(kf, pf)
+            step, sub = self._map_keyframe(kf)
             refined = self.atlas.to_world(sub, step.refined)
             dropped = tuple(n for n in sub.keyframes.take_dropped() if self.atlas.owns(sub, n))
             mapping_loss = step.loss
         # Keyframes placed by other submaps' (loops), as soon as a check ends: also on a frame that made no keyframe
         # (a relocalization checks every waiting keyframe first; a lost camera makes none).
         for check in self.tracking.take_checks():
-            refined.update(self.atlas.close_loop(check, pf.index))
+            refined.update(self.atlas.close_loop(check, pf.index, pf.timestamp))
         if refined or dropped:
             self.tracking.apply(PoseCorrections(refined, dropped))
         pose = tracked.pose
+        if self.cfg.run.mode == "localization" and (not pose.lost or pose.relocalized_from is not None):
+            self.atlas.follow(pose.pose.double().numpy()[:3, 3], pose.relocalized_from)  # (no keyframe places it)
         return StepResult(pf.index, self.trajectory.pose(n), pose.loss, pose.keyframe, mapping_loss, refined,
                           pose.quality.value, pose.lost, tracked.anchor, pose.covariance_matrix,
                           pose.quality.degraded)
 
-    def _map_keyframe(self, kf, pf) -> tuple[MappingStep, SceneMap]:
-        """A new keyframe into its submap (submaps/atlas.py) and a mapping step there: a new submap starts with it
-        and is warmed up as the first map was."""
-        sub = self.atlas.submap_for(kf)
-        if sub is not None:
-            sub.add_keyframe(self.atlas.local(sub, kf))
-            return sub.map_newest(self.after_mapping_iteration), sub
-        previous = self.atlas.active
-        sub = self.atlas.new_submap(anchored_at(kf.pose.double().numpy()))
-        local = self.atlas.local(sub, kf)
-        sub.start(initial_extent(self.cfg, pf, self.intr, local.pose.double().numpy()))
-        sub.add_keyframe(local)
-        for shared in self.atlas.overlap(previous, sub):
-            sub.add_keyframe(shared)
-        log.info("keyframe %d: submap %d begins (%d submaps)", kf.number, sub.number, len(self.atlas.submaps))
-        return sub.warm_up(self.after_mapping_iteration), sub
+    def _map_keyframe(self, kf) -> tuple[MappingStep, SceneMap]:
+        """A new keyframe into its submap (Atlas.place) and a mapping step there; a submap that begins with it is
+        warmed up as the first map was."""
+        sub, began = self.atlas.place(kf)
+        return (sub.warm_up if began else sub.map_newest)(self.after_mapping_iteration), sub
 
     # ------------------------------------------------------------------------------------------------ checkpoint
     def state_dict(self) -> dict:
@@ -139,8 +130,7 @@ class SLAM:
         else:
             slam.atlas.load_single_map(state["map"])
         slam.tracking.trajectory = TrackedTrajectory.from_state_dict(state["trajectory"])
-        atlas = slam.atlas
-        slam.tracking.frontend.start_lost([kf for sub in atlas.submaps for kf in atlas.to_world_keyframes(sub)])
+        slam.tracking.frontend.start_lost(slam.atlas.world_keyframes())
         return slam
 
 

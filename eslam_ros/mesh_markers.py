@@ -189,6 +189,14 @@ def block_marker_id(key: tuple[int, int, int]) -> int:
     return (i << 20) | (j << 10) | k
 
 
+def block_marker(key: tuple, ns: str) -> tuple[str, int]:
+    """The namespace and id of the marker of map block (i, j, k), or (submap, i, j, k) with submaps: each submap's
+    blocks in a namespace of their own (a checkbox each in RViz), "<ns>/submap_<n>"."""
+    if len(key) == 4:
+        return f"{ns}/submap_{int(key[0])}", block_marker_id(key[1:])
+    return ns, block_marker_id(key)
+
+
 def block_message_parts(blocks: Mapping[tuple[int, int, int], TriangleBlock],
                         max_bytes: int) -> list[dict[tuple[int, int, int], TriangleBlock]]:
     """`blocks` cut into consecutive parts of at most about `max_bytes` of message each (a block larger than that
@@ -213,8 +221,9 @@ def serialize_block_markers(
     ns: str = "mesh",
     delete_all: bool = False,
 ) -> bytes:
-    """CDR bytes of a MarkerArray for map blocks: a DELETEALL first if `delete_all` (a new map), a DELETE for each
-    block in `removed`, and an ADD (a TRIANGLE_LIST replacing any earlier marker of that id) for each of `blocks`."""
+    """CDR bytes of a MarkerArray for map blocks (`block_marker`): a DELETEALL of `ns` first if `delete_all` (a new
+    map), a DELETE for each block in `removed`, and an ADD (a TRIANGLE_LIST replacing any earlier marker of that
+    id) for each of `blocks`."""
     header = Header(stamp=to_time(stamp), frame_id=str(frame_id))
     removed = list(removed)
     w = CdrWriter()
@@ -222,11 +231,11 @@ def serialize_block_markers(
     if delete_all:
         _write_marker(w, header, ns, 0, Marker.TRIANGLE_LIST, Marker.DELETEALL, (0.0, 0.0, 0.0, 0.0), None)
     for key in removed:
-        _write_marker(w, header, ns, block_marker_id(key), Marker.TRIANGLE_LIST, Marker.DELETE, (0.0, 0.0, 0.0, 0.0),
+        _write_marker(w, header, *block_marker(key, ns), Marker.TRIANGLE_LIST, Marker.DELETE, (0.0, 0.0, 0.0, 0.0),
                       None)
     for key, block in blocks.items():
         color = (1.0, 1.0, 1.0, 1.0) if block.colors is not None else DEFAULT_MESH_COLOR
-        _write_marker(w, header, ns, block_marker_id(key), Marker.TRIANGLE_LIST, Marker.ADD, color, block)
+        _write_marker(w, header, *block_marker(key, ns), Marker.TRIANGLE_LIST, Marker.ADD, color, block)
     return w.getvalue()
 
 

@@ -234,10 +234,12 @@ class MeshPublication:
     def _forget_map(self) -> None:
         """Subscribers drop every block (the one DELETEALL), the mesh process forgets the old map."""
         self.mesher.reset()
+        # (A DELETEALL of a namespace leaves other namespaces' markers: submaps' blocks are deleted one by one.)
+        submaps = [key for key in self._published if len(key) == 4]
         self._published.clear()
         self._meshed_version, self._last_snapshot = None, -float("inf")
         self.figures.blocks = self.figures.triangles = self.figures.blocks_pending = 0
-        self._publish(serialize_block_markers({}, [], self.frame_id, self._now(), NAMESPACE, delete_all=True))
+        self._publish(serialize_block_markers({}, submaps, self.frame_id, self._now(), NAMESPACE, delete_all=True))
         self.figures.publications += 1
         self._since_full = 0  # an empty map, completely described
 

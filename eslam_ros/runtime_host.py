@@ -43,9 +43,6 @@ class RuntimeHost:
         self._starter: Optional[threading.Thread] = None
         self._load_map = bool(settings.map_file)  # the next runtime starts from map_file
         self._lock = threading.Lock()  # the runtime's replacement (reset, load_map) against the input thread
-        if config.submaps.radius_m > 0:  # (the live mesh blocks and the corrections it publishes are one map's)
-            self.fail("submaps.radius_m > 0: the node does not run submaps yet; map with `eslam run --workers 1 "
-                      "--set submaps.radius_m=...`, or set submaps.radius_m 0 (one map) for the node")
 
     def state(self) -> str:
         """waiting (for a first frame), starting, running or failed."""

@@ -16,6 +16,15 @@ def room_sequence(tmp_path_factory):
     return open_dataset(path, "tum")
 
 
+@pytest.fixture(scope="session")
+def long_room(tmp_path_factory):
+    """The camera walks 3.7 m along a room twice as long as the embedded one, looking across it (150 frames at
+    160x120): long enough for several 1 m submaps."""
+    path = generate_scene(tmp_path_factory.mktemp("long") / "seq", n_frames=150, width=160, height=120, seed=1,
+                          layout="long_room")
+    return open_dataset(path, "tum")
+
+
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)

@@ -10,8 +10,6 @@ import torch
 
 from eslam_core.camera import Intrinsics
 from eslam_core.config import ModelConfig, load_config
-from eslam_core.datasets import open_dataset
-from eslam_core.datasets.synthetic import generate_scene
 from eslam_core.datasets.tum import read_tum
 from eslam_core.evaluation.trajectory_error import still_camera_ate
 from eslam_core.mapping.extent import grown_extent
@@ -117,14 +115,6 @@ def test_reduced_keyframe_reads_the_frames_pixels():
 # ------------------------------------------------------------------------------------------- SLAM in the long room
 
 ROOM = [[-4.0, -1.5, 0.0], [4.0, 1.5, 2.6]]
-
-
-@pytest.fixture(scope="module")
-def long_room(tmp_path_factory):
-    """The camera walks 3.7 m along a room twice as long as the embedded one, looking across it."""
-    path = generate_scene(tmp_path_factory.mktemp("long") / "seq", n_frames=150, width=160, height=120, seed=1,
-                          layout="long_room")
-    return open_dataset(path, "tum")
 
 
 def _run(long_room, out, workers: int = 1, **scene):

@@ -149,6 +149,8 @@ def test_a_map_is_checked_against_the_loading_configuration_and_camera_in_one_pl
     assert "model.fine_appearance_resolution is 0.06 in the map, 0.03 in this config" in message and "'fast'" in message
     assert "model.channels" in refused(state, load_config("fast", {"model": {"channels": 8}}))
     assert "camera.image_scale" in refused(state, load_config("fast", {"camera": {"image_scale": 0.5}}))
+    message = refused(state, load_config("fast", {"submaps": {"radius_m": 2.0}}))
+    assert "made as one map, this configuration has submaps.radius_m 2" in message and "radius_m to 0" in message
     message = refused(state, cfg, default_intrinsics(80, 60))
     assert "made for camera 64x48 fx=54.32522" in message and "come from 80x60 fx=67.906525" in message
     check_compatible(state, cfg, None, path)  # the camera unknown: that check waits, the others ran above

@@ -89,6 +89,15 @@ def test_block_markers_decode_with_ids_from_block_coordinates():
     assert len(ids) == len(keys) and all(0 <= i < 2**31 for i in ids)
 
 
+def test_submaps_blocks_are_markers_in_a_namespace_per_submap():
+    corners = np.zeros((3, 3))
+    blocks = {(0, 1, -1, 1): TriangleBlock(corners, None), (3, 1, -1, 1): TriangleBlock(corners, None)}
+    msg = deserialize_message(serialize_block_markers(blocks, [(3, 0, 0, 0)], "map", 1.0, ns="m"), MarkerArray)
+    assert [(m.action, m.ns, m.id) for m in msg.markers] == [
+        (Marker.DELETE, "m/submap_3", block_marker_id((0, 0, 0))),
+        (Marker.ADD, "m/submap_0", block_marker_id((1, -1, 1))), (Marker.ADD, "m/submap_3", block_marker_id((1, -1, 1)))]
+
+
 def test_blocks_are_cut_into_messages_of_at_most_the_size_asked():
     blocks = {(i, 0, 0): TriangleBlock(np.zeros((3 * n, 3)), None) for i, n in enumerate([100, 300, 50, 2000, 10])}
     parts = block_message_parts(blocks, 500 * 3 * CORNER_BYTES)

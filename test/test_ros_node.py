@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
+import torch
 import trimesh
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
@@ -611,3 +612,37 @@ def test_a_map_saved_by_one_node_is_reused_by_another_which_relocalizes(room_seq
             listener.node.destroy_node()
         for process in processes:
             _kill(process)
+
+
+def test_the_node_maps_in_submaps_through_the_pipelined_runtime(long_room, tmp_path, ros):
+    """Submaps in the node: the long room's walk through the tracking and mapping processes in submaps of 1 m,
+    every frame posed where it was, the status counting the submaps, the mesh's blocks in a namespace per submap,
+    and a checkpoint with every submap saved on shutdown."""
+    fast = load_config("fast").mapping
+    params = {"workers": 2, "eslam.submaps.radius_m": 1.0, "eslam.scene.bound_margin": 0.3,
+              "eslam.mapping.iterations": fast.iterations, "eslam.mapping.rays": fast.rays,
+              "eslam.mapping.first_iterations": fast.first_iterations}
+    process = _start_node(tmp_path / "out", tmp_path / "node.log", **params)
+    listener = Listener()
+    try:
+        assert listener.connect(process), (tmp_path / "node.log").read_text()[-3000:]
+        _play(write_bag(long_room, tmp_path / "long.mcap").path)
+        done = listener.spin_until(lambda: listener.count("frames_tracked") == len(long_room)
+                                   and len(listener.poses) == len(long_room) and listener.count("submaps") >= 3
+                                   and any(m.ns.startswith("eslam_mesh/submap_") for a in listener.meshes
+                                           for m in a.markers), 300.0, process)
+        assert done, (listener.health(), (tmp_path / "node.log").read_text()[-3000:])
+        stamps = long_room.timestamps()
+        estimate = Trajectory(np.array([stamp_to_sec(p.header.stamp) for p in listener.poses]),
+                              np.stack([msg_to_pose(p.pose) for p in listener.poses]))
+        error = ate(estimate, Trajectory(stamps, np.stack(long_room.gt_poses())), max_dt=1e-3)
+        assert error.n == len(long_room) and error.rmse < 0.03  # a constant pose is metres off
+        namespaces = {m.ns for a in listener.meshes for m in a.markers if m.action == m.ADD}
+        assert len(namespaces) >= 2 and all(ns.startswith("eslam_mesh/submap_") for ns in namespaces)
+        process.send_signal(signal.SIGINT)
+        assert process.wait(120) == 0, (tmp_path / "node.log").read_text()[-3000:]
+        saved = torch.load(tmp_path / "out" / "checkpoint.pt", weights_only=False)
+        assert len(saved["atlas"]["submaps"]) >= listener.count("submaps")  # (the status may be a step behind)
+    finally:
+        listener.node.destroy_node()
+        _kill(process)

@@ -230,19 +230,3 @@ def test_the_nodes_trigger_save_reports_one_line_and_the_node_goes_on(monkeypatc
     saved, message = host.save("trajectory.txt", lambda rt, p: rt.save_trajectory(p))  # a small one still fits
     assert saved, message
     assert files_in(tmp_path) == {"checkpoint.pt", "trajectory.txt"}
-
-
-def test_the_node_refuses_submaps_with_a_clear_reason(tmp_path):
-    """Submaps run in `eslam run` (lock-step) only so far: a node configured with them fails at once, saying what
-    to do (its mesh blocks and map corrections are one map's)."""
-    pytest.importorskip("rclpy")
-    import logging
-
-    from eslam_ros.node_params import NodeSettings
-    from eslam_ros.node_threads import LogThrottle
-    from eslam_ros.runtime_host import RuntimeHost
-
-    host = RuntimeHost(NodeSettings(output_dir=str(tmp_path), workers=1),
-                       load_config("fast", {"submaps": {"radius_m": 2.0}}), logging.getLogger("test"),
-                       LogThrottle(1.0), poses=None)
-    assert host.state() == "failed" and "submaps.radius_m" in host.failed

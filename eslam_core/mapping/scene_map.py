@@ -216,7 +216,7 @@ class SceneMap:
         for i, pose in res.refined.items():
             self.keyframes[i].pose = pose.float()
             refined[self.keyframes[i].number] = self.keyframes[i].pose
-        self.observed.mapped(self.keyframes.made)
+        self.observed.mapped(self.observed.added)
         return MappingStep(res.loss, refined)
 
     def consistency_due(self) -> bool:

@@ -93,6 +93,11 @@ class Health:
     # that is a disagreement (a slide mapped earlier).
     map_disagreement_cm: float = math.nan
     map_disagrees: bool = False
+    # The submaps of the map (submaps/atlas.py; 1: one map), the loops closed between them, and for the newest loop
+    # the seconds of input from the revisit (the keyframe that found the place) to the corrected map (NaN: none).
+    submaps: int = 1
+    loops_closed: int = 0
+    loop_correction_s: float = math.nan
     # Where the workers' time goes: milliseconds per event of each stage (runtime/shared.py: STAGES; multi-process).
     stage_ms: dict = field(default_factory=dict)
 

@@ -29,9 +29,6 @@ def make_runtime(cfg: Config, intrinsics: Intrinsics, workers: int = 2, policy: 
     if Runtime is None:
         raise RuntimeSetupError(f"workers must be one of {WORKER_CHOICES} (1 = lock-step in this process, 2 = a "
                                 f"tracking and a mapping process), got {workers!r}")
-    if workers == 2 and cfg.submaps.radius_m > 0:
-        raise RuntimeSetupError("submaps (submaps.radius_m > 0) run lock-step only so far: use --workers 1, or "
-                                "submaps.radius_m 0 for one map through the two processes")
     return Runtime(tuned(cfg, tuning), intrinsics, policy=policy, threads=threads, checkpoint=checkpoint)
 
 

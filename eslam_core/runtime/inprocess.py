@@ -60,7 +60,8 @@ class InProcessRuntime(SavingMixin):
         self._thread: Optional[threading.Thread] = None
         self._epoch = 0
         self._step_epoch = 0  # the epoch of the step in progress
-        self._counts = dict(received=0, tracked=0, dropped=0, mapping_steps=0)  # since start (over resets)
+        # Since start (over resets); the map changes with every mapping step and every loop closed.
+        self._counts = dict(received=0, tracked=0, dropped=0, map_changes=0)
         self._new_map()
 
     def _new_map(self) -> None:
@@ -135,7 +136,7 @@ class InProcessRuntime(SavingMixin):
         with self._lock:
             check = self.slam.tracking.map_check  # (replaced whole by the SLAM thread, never changed in place)
             return Health(frames_received=c["received"], frames_tracked=c["tracked"], frames_dropped=c["dropped"],
-                          input_queue_depth=pending, keyframe_queue_depth=0, map_version=c["mapping_steps"],
+                          input_queue_depth=pending, keyframe_queue_depth=0, map_version=c["map_changes"],
                           **self._parent.health_figures(), **self._memory, peak_memory_mb={"process": peak_rss_mb()},
                           map_disagreement_cm=math.nan if check is None else 100.0 * check.metres,
                           map_disagrees=check is not None and check.disagrees)
@@ -147,7 +148,9 @@ class InProcessRuntime(SavingMixin):
                 return
             memory = self.slam.atlas.memory()  # (summed over the submaps)
             consistency = self.slam.map.consistency() if self.slam.map.consistency_due() else None
-        figures = {k: memory[k] for k in ("map_bytes", "keyframe_bytes", "keyframes_kept")}
+        figures = {k: memory[k] for k in ("map_bytes", "keyframe_bytes", "keyframes_kept", "submaps", "loops_closed")}
+        if self.slam.atlas.closures:
+            figures["loop_correction_s"] = self.slam.atlas.closures[-1].seconds
         if consistency is not None:
             figures.update(consistency_mm=consistency.median_mm, consistency_agree=consistency.agree_fraction)
         with self._lock:
@@ -164,7 +167,7 @@ class InProcessRuntime(SavingMixin):
 
     def mesh_snapshot(self, have: set):
         with self._slam_lock:  # (held for a whole step: the map between two steps)
-            return snapshot_for_meshing(self.slam.map, have)
+            return snapshot_for_meshing(self.slam.atlas, have)
 
     def reset(self) -> None:
         self._check_running()
@@ -253,12 +256,14 @@ class InProcessRuntime(SavingMixin):
                         self._parent.posed(record, res.anchor, res.keyframe, done - arrival, done)
                         if res.keyframe:
                             self._parent.mapped(res.refined, done)
+                        elif res.refined:  # a loop closed on a frame without a keyframe (submaps)
+                            self._parent.corrected(res.refined)
                         self._posed.notify_all()
                 if res.keyframe:  # after the pose is out: the consistency score takes tens of ms
                     self._measure_map(epoch)
                 with self._cond:
                     self._counts["tracked"] += 1
-                    self._counts["mapping_steps"] += int(res.keyframe)
+                    self._counts["map_changes"] += int(res.keyframe or bool(res.refined))
         except BaseException as e:  # noqa: BLE001 - reported to the caller as a crash
             self._crash = RuntimeCrashed("slam", f"the SLAM thread failed: {type(e).__name__}: {e}",
                                          traceback.format_exc())

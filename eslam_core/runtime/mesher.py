@@ -67,6 +67,10 @@ class MeshSnapshot:
     keyframe_ids: list[Hashable]
     poses: np.ndarray  # (K, 4, 4)
     new_depths: dict  # keyframe id -> (H, W) float32 depth image, for the keyframes the process has not got yet
+    # With submaps (submaps/atlas.py): the submap all the above is of (in its frame), and every submap's anchor (its
+    # frame's world pose). Empty: one map in the world frame, its blocks keyed (i, j, k); else (submap, i, j, k).
+    submap: int = 0
+    anchors: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -144,14 +148,18 @@ class PackedSnapshot:
         return pickle.loads(memoryview(self.data.numpy()))
 
 
-def snapshot_for_meshing(scene, have: set) -> MeshSnapshot:
-    """A scene map (`SLAM.map`; in the runtime the mapping process's, see `mesh_snapshot`) as a MeshSnapshot;
-    `have`: keyframe ids whose depth was sent."""
+def snapshot_for_meshing(atlas, have: set) -> MeshSnapshot:
+    """The map of an Atlas (`SLAM.atlas`; in the runtime the mapping process's, see `mesh_snapshot`) as a
+    MeshSnapshot: its active submap, and with submaps every submap's anchor; `have`: keyframe ids whose depth was
+    sent."""
+    scene = atlas.active
     view = mesh_source(scene, skip_depths=have)
     buffer = io.BytesIO()
     torch.save(scene.field, buffer)
+    anchors = {sub.number: atlas.anchor(sub) for sub in atlas.submaps} if atlas.cfg.submaps.radius_m > 0 else {}
     return MeshSnapshot(buffer.getvalue(), view.bound, view.truncation, view.intrinsics, list(view.keyframe_ids),
-                        view.poses, {k: d for k, d in zip(view.keyframe_ids, view.depths) if d is not None})
+                        view.poses, {k: d for k, d in zip(view.keyframe_ids, view.depths) if d is not None},
+                        scene.number, anchors)
 
 
 @dataclass(frozen=True)
@@ -179,6 +187,15 @@ class _Reset:
 # ------------------------------------------------------------------------------------------------ the process
 
 
+@dataclass
+class _Part:
+    """One submap's meshing (the map's, without submaps): its blocks, the newest view of it, its anchor."""
+
+    mesher: IncrementalMesher
+    view: MeshSource
+    anchor: Optional[np.ndarray] = None  # None: the world's frame
+
+
 class _Worker:
     def __init__(self, setup: _Setup) -> None:
         self.setup = setup
@@ -186,34 +203,73 @@ class _Worker:
         self.reset()
 
     def reset(self) -> None:
-        self.mesher: Optional[IncrementalMesher] = None
-        self.view: Optional[MeshSource] = None
+        self.parts: dict[int, _Part] = {}  # by submap number
+        self.submapped = False  # blocks are keyed (submap, i, j, k)
         self.depths: dict = {}
         self.stride = 1
 
     def run(self, epoch: int, snapshot: Optional[MeshSnapshot], everything: bool = False) -> MeshUpdate:
         wall, cpu = time.monotonic(), time.process_time()
+        moved: set[int] = set()
+        current = None
         if snapshot is not None:
-            self.view = self._view(snapshot)
-        if self.view is None:
+            current = self._take(snapshot, moved)
+        if not self.parts:
             return MeshUpdate(epoch)
-        if self.mesher is None:
-            settings = MeshSettings(resolution=self.layout.resolution, truncation=self.view.truncation)
-            self.mesher = IncrementalMesher(self.layout, settings)
-        changes = self.mesher.update(self.view, self.setup.budget_s)
-        blocks = self.mesher.blocks
-        stride = thinning_stride(sum(b.triangles for b in blocks.values()), self.setup.triangle_budget)
-        # A new stride thins every block anew.
-        resend = blocks if everything or stride != self.stride else changes.changed
+        # The submap the snapshot is of first (the one being mapped), then the others' blocks still to mesh.
+        order = sorted(self.parts, key=lambda n: (n != current, n))
+        changed, removed, meshed, pending = {}, [], 0, 0
+        for number in order:
+            part = self.parts[number]
+            budget = self.setup.budget_s - (time.monotonic() - wall)
+            if number != order[0] and (budget <= 0 or not part.mesher.pending):
+                pending += part.mesher.pending
+                continue
+            changes = part.mesher.update(part.view, max(budget, 0.0))
+            changed.update({self._key(number, key): mesh for key, mesh in changes.changed.items()})
+            removed += [self._key(number, key) for key in changes.removed]
+            meshed, pending = meshed + changes.meshed, pending + changes.pending
+        blocks = {self._key(number, key): (part, mesh) for number, part in self.parts.items()
+                  for key, mesh in part.mesher.blocks.items()}
+        stride = thinning_stride(sum(mesh.triangles for _, mesh in blocks.values()), self.setup.triangle_budget)
+        # A new stride thins every block anew; a submap that moved (a loop closed) is sent whole where it is now.
+        if everything or stride != self.stride:
+            resend = set(blocks)
+        else:
+            resend = set(changed) | {key for key in blocks if self.submapped and key[0] in moved}
         self.stride = stride
 
-        def block_stride(block) -> int:  # the map's stride, or more for a block too big for one marker
-            return max(stride, thinning_stride(block.triangles, MAX_BLOCK_TRIANGLES))
+        def block_stride(mesh) -> int:  # the map's stride, or more for a block too big for one marker
+            return max(stride, thinning_stride(mesh.triangles, MAX_BLOCK_TRIANGLES))
 
-        soups = {key: triangle_soup(blocks[key], block_stride(blocks[key])) for key in resend}
-        triangles = sum(-(-b.triangles // block_stride(b)) for b in blocks.values())
-        return MeshUpdate(epoch, PackedSoups.of(soups), changes.removed, everything, len(blocks), triangles, stride,
-                          changes.meshed, changes.pending, time.monotonic() - wall, time.process_time() - cpu)
+        soups = {key: in_world(triangle_soup(blocks[key][1], block_stride(blocks[key][1])), blocks[key][0].anchor)
+                 for key in resend}
+        triangles = sum(-(-mesh.triangles // block_stride(mesh)) for _, mesh in blocks.values())
+        return MeshUpdate(epoch, PackedSoups.of(soups), removed, everything, len(blocks), triangles, stride,
+                          meshed, pending, time.monotonic() - wall, time.process_time() - cpu)
+
+    def _key(self, submap: int, key: Key) -> Hashable:
+        return (submap, *key) if self.submapped else key
+
+    def _take(self, snapshot: MeshSnapshot, moved: set) -> int:
+        """A snapshot's view of its submap; the submaps whose anchors moved into `moved`. Returns its submap."""
+        self.submapped = bool(snapshot.anchors)
+        view = self._view(snapshot)
+        part = self.parts.get(snapshot.submap)
+        if part is None:
+            settings = MeshSettings(resolution=self.layout.resolution, truncation=view.truncation)
+            part = self.parts[snapshot.submap] = _Part(IncrementalMesher(self.layout, settings), view)
+        part.view = view
+        for number, anchor in snapshot.anchors.items():
+            other = self.parts.get(number)
+            if other is not None:
+                if other.anchor is not None and not np.array_equal(other.anchor, anchor):
+                    moved.add(number)
+                other.anchor = np.asarray(anchor)
+        # Dropped keyframes are forgotten: those no part's view holds.
+        held = {k for p in self.parts.values() for k in p.view.keyframe_ids}
+        self.depths = {k: d for k, d in self.depths.items() if k in held}
+        return snapshot.submap
 
     def _view(self, snapshot: MeshSnapshot) -> MeshSource:
         # Bytes the caller's torch.save wrote, through a private pipe (not a file): the module is unpickled whole.
@@ -223,9 +279,16 @@ class _Worker:
         if missing:
             raise ValueError(f"the snapshot lacks the depth images of keyframes {missing[:5]}: build it with the "
                              f"mesher's have() after its last update")
-        self.depths = {k: self.depths[k] for k in snapshot.keyframe_ids}  # dropped keyframes are forgotten
         return MeshSource(field_.sdf, field_.color, snapshot.bound, snapshot.truncation, snapshot.intrinsics,
-                       list(snapshot.keyframe_ids), snapshot.poses, [self.depths[k] for k in snapshot.keyframe_ids])
+                          list(snapshot.keyframe_ids), snapshot.poses, [self.depths[k] for k in snapshot.keyframe_ids])
+
+
+def in_world(soup: tuple[np.ndarray, np.ndarray], anchor: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """A block's triangle soup (corners in its submap's frame) in the world frame."""
+    corners, colors = soup
+    if anchor is None:
+        return soup
+    return np.ascontiguousarray(corners @ anchor[:3, :3].T + anchor[:3, 3], dtype="<f8"), colors
 
 
 def _serve(connection, setup: _Setup) -> None:

@@ -53,6 +53,7 @@ from eslam_core.child_process import EXIT_ORPHANED, spawned_with_stop_signals_bl
 from eslam_core.config import Config
 from eslam_core.frames import working_images, working_intrinsics
 from eslam_core.slam import SLAM, loaded_trajectory
+from eslam_core.submaps.atlas import Atlas
 from eslam_core.trajectory import TrackedTrajectory
 from eslam_core.runtime.saving import SavingMixin
 from eslam_core.outputs.mesh import EmptyMeshError
@@ -61,8 +62,8 @@ from eslam_core.runtime.api import Health, PoseUpdate, RuntimeCrashed, RuntimeSe
     check_frame, check_policy, peak_rss_mb
 from eslam_core.runtime.parent_state import ParentState
 from eslam_core.runtime.shared import Control, Counter, FrameRing, HealthBoard, MapMeta, stage_profile
-from eslam_core.runtime.workers import Channels, MapperFinished, MapperSnapshot, MappingReport, MeshRequest, SnapshotRequest, \
-    TrackedFrame, TrackerFinished, WorkerReady, WorkerSetup, mapper_main, tracker_main
+from eslam_core.runtime.workers import Channels, LoopClosed, MapperFinished, MapperSnapshot, MappingReport, \
+    MeshRequest, SnapshotRequest, TrackedFrame, TrackerFinished, WorkerReady, WorkerSetup, mapper_main, tracker_main
 
 log = logging.getLogger("eslam")
 
@@ -370,6 +371,8 @@ class MultiProcessRuntime(SavingMixin):
             self._parent.posed(msg.record, msg.keyframe, msg.keyframe, msg.latency_s, msg.done)
         elif isinstance(msg, MappingReport):
             self._parent.mapped(msg.refined, msg.done)
+        elif isinstance(msg, LoopClosed):
+            self._parent.corrected(msg.refined)
         elif isinstance(msg, TrackerFinished):
             self._tracker_finished = True
         elif isinstance(msg, MapperFinished):
@@ -453,6 +456,8 @@ class MultiProcessRuntime(SavingMixin):
                 map_read_ms=1000.0 * b.get(Counter.READ_SECONDS) / max(b.get(Counter.READS), 1.0),
                 map_bytes=int(b.get(Counter.MAP_BYTES)), keyframe_bytes=int(b.get(Counter.KEYFRAME_BYTES)),
                 keyframes_kept=int(b.get(Counter.KEYFRAMES_KEPT)),
+                submaps=max(1, int(b.get(Counter.SUBMAPS))), loops_closed=int(b.get(Counter.LOOPS_CLOSED)),
+                loop_correction_s=b.get(Counter.LOOP_CORRECTION_S) if b.get(Counter.LOOPS_CLOSED) else math.nan,
                 consistency_mm=b.get(Counter.CONSISTENCY_MM) if b.get(Counter.CONSISTENCY_PAIRS) else math.nan,
                 consistency_agree=b.get(Counter.CONSISTENCY_AGREE) if b.get(Counter.CONSISTENCY_PAIRS) else math.nan,
                 map_disagreement_cm=b.get(Counter.MAP_CHECK_CM) if b.get(Counter.MAP_CHECK) else math.nan,
@@ -485,7 +490,12 @@ class MultiProcessRuntime(SavingMixin):
                                                                     path.format(request_id)), "a snapshot of the map")
         slam = SLAM(self.cfg, self.intrinsics)
         if state is not None:  # else reset meanwhile, or nothing tracked yet
-            slam.atlas.load_single_map(read_snapshot(state))
+            state = read_snapshot(state)
+            if "atlas" in state:
+                slam.atlas = Atlas(slam.cfg, slam.intr, slam.dirs_cam)
+                slam.atlas.load_state_dict(state["atlas"])
+            else:
+                slam.atlas.load_single_map(state)
             slam.tracking.trajectory = TrackedTrajectory.from_state_dict(trajectory)
         return slam
 
@@ -511,7 +521,7 @@ class MultiProcessRuntime(SavingMixin):
 
     def mesh_snapshot(self, have: set):
         if self._final is not None:
-            return snapshot_for_meshing(self._final.map, have)
+            return snapshot_for_meshing(self._final.atlas, have)
         self._check_running()
         epoch = self._epoch
         snapshot = self._ask_mapper(lambda request_id: MeshRequest(request_id, epoch, set(have)), "the map for a mesh")

@@ -41,6 +41,10 @@ class ParentState:
         self.trajectory.refine(refined)
         self.mapping_rate.tick(done)
 
+    def corrected(self, refined: dict) -> None:
+        """Keyframe poses moved by a loop closure (keyframe number -> 4x4)."""
+        self.trajectory.refine(refined)
+
     def take_updates(self) -> list[PoseUpdate]:
         out, self.updates = self.updates, []
         return out

@@ -317,6 +317,11 @@ class Counter(IntEnum):
     MAP_CHECK = 37  # mapper: the newest map check (tracking/map_check.py): 0 none yet, 1 agrees, 2 disagrees
     MAP_CHECK_CM = 38  # mapper: its distance between the tracked and the placed keyframe, cm
     MAP_INDEX_S = 39  # mapper: keyframes indexed for relocalization and checked against the map (places.py)
+    SUBMAPS = 40  # mapper: submaps in the map (submaps/atlas.py; 1: one map)
+    LOOPS_CLOSED = 41  # mapper: loop edges the pose graph kept
+    LOOP_CORRECTION_S = 42  # mapper: the newest loop's seconds of input from the revisit to the corrected map
+    TRACKED_INDEX = 43  # tracker: the newest tracked frame's index
+    TRACKED_STAMP = 44  # tracker: and its stamp
 
 
 # The stage counters, each with the events it is divided by: (stage, seconds, events, events not timed). The

@@ -34,6 +34,7 @@ faults are separated by commas.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import io
 import logging
@@ -68,6 +69,8 @@ from eslam_core.runtime.mesher import PackedSnapshot, snapshot_for_meshing
 from eslam_core.runtime.api import peak_rss_mb
 from eslam_core.runtime.budget import MappingBudget
 from eslam_core.slam import loaded_slam
+from eslam_core.submaps.atlas import Atlas
+from eslam_core.tracking.frontend import TrackedPose, TrackingFrontEnd
 from eslam_core.tracking.places import KeyframePlaces
 from eslam_core.tracking.session import PoseCorrections, Tracked, TrackingSession
 from eslam_core.trajectory import FrameRecord, TrackedTrajectory
@@ -77,6 +80,10 @@ log = logging.getLogger("eslam")
 
 EXIT_CRASHED = 1
 POLL_S = 0.05  # how often idle workers look at their flags and queues
+# Keyframes handed over whose surface points the tracker keeps: a submap the mapper attaches it to holds those it
+# had received; the mapper is never more than a few keyframes behind when it begins a submap.
+HANDED_KEPT = 8
+FOLLOW_EVERY = 15  # frames between two reports of a localizing tracker's position to the mapper
 
 
 # ------------------------------------------------------------------------------------------------------ messages
@@ -126,17 +133,37 @@ class TrackerFinished:  # tracker -> mapper and parent: no more frames (input dr
 
 
 @dataclass
-class MapAttach:  # mapper -> tracker, after the warm-up and after every growth: where the map is, and its extent
+class MapAttach:  # mapper -> tracker, after the warm-up and every growth: where the map is, and its extent
     epoch: int
     buffers: torch.Tensor
     generation: int
     extent: np.ndarray
+    # With submaps (submaps/atlas.py), also after the active submap changed or moved: its number and anchor (None:
+    # the world's frame); when it changed, a copy of its observed space and the newest keyframe number it holds
+    # (the tracker adds the keyframes it handed over since).
+    submap: int = 0
+    anchor: Optional[np.ndarray] = None
+    observed: Optional[ObservedSurfaces] = None
+    holds: int = -1
+
+
+@dataclass
+class CameraAt:  # tracker -> mapper, localization with submaps: where the camera is (for Atlas.follow)
+    epoch: int
+    position: np.ndarray  # (3,) world
+    found_by: Optional[int]  # the keyframe whose features found it (a relocalization), if any
 
 
 @dataclass
 class Corrections:  # mapper -> tracker
     epoch: int
     corrections: PoseCorrections  # refined keyframe poses ((4, 4) float32), keyframes the store dropped
+
+
+@dataclass
+class LoopClosed:  # mapper -> parent: the keyframe poses a loop closure moved (submaps/atlas.py)
+    epoch: int
+    refined: dict
 
 
 @dataclass
@@ -324,8 +351,12 @@ class MapReplica:
         self.field: Optional[SceneField] = None
         self.version = 0  # of the field's values: counts the changes (new fields, versions copied in)
         self.observed: Optional[ObservedSurfaces] = None
-        self.newest: Optional[Keyframe] = None
-        self.anchor: Optional[np.ndarray] = None  # (one map in the world frame: submaps are lock-step only so far)
+        self.newest: Optional[Keyframe] = None  # (its world pose)
+        # With submaps: the active one's number and anchor (its frame's world pose; None: the world's frame), and
+        # the surface points (world) of the newest keyframes handed over, which a submap attached later may lack.
+        self.submap = 0
+        self.anchor: Optional[np.ndarray] = None
+        self.handed: deque = deque(maxlen=HANDED_KEPT if cfg.submaps.radius_m > 0 else 0)
 
     @property
     def started(self) -> bool:
@@ -338,13 +369,31 @@ class MapReplica:
         self.observed = ObservedSurfaces(extent, self.cfg.model.truncation, self.device,
                                          self.cfg.sdf_tracker.observed_after)
 
-    def attach(self, extent: np.ndarray) -> None:
-        """The mapper's map over `extent` (grown, or as started): a field of that size to copy it into."""
-        if not np.array_equal(extent, self.extent):
-            self.extent = np.asarray(extent)
+    def attach(self, msg: MapAttach) -> None:
+        """The mapper's map over `msg.extent` (grown, or as started): a field of that size to copy it into; with
+        submaps, another submap (its observed space as the mapper has it, plus the keyframes handed over since) or
+        the same one moved."""
+        self.anchor = msg.anchor
+        if msg.observed is not None:
+            self.submap, self.extent = msg.submap, np.asarray(msg.extent)
+            self.field = SceneField(self.extent, self.cfg.model, self.device)
+            self.version += 1
+            self.observed = msg.observed
+            for number, points in self.handed:
+                if number > msg.holds:
+                    self.observed.add_keyframe(self._local(points))
+        elif not np.array_equal(msg.extent, self.extent):
+            self.extent = np.asarray(msg.extent)
             self.field = SceneField(self.extent, self.cfg.model, self.device)
             self.version += 1
             self.observed.grow(self.extent)
+
+    def _local(self, points: torch.Tensor) -> torch.Tensor:
+        """World points in the map's frame."""
+        if self.anchor is None:
+            return points
+        to_local = torch.from_numpy(np.linalg.inv(self.anchor)).to(points.dtype)
+        return points @ to_local[:3, :3].T + to_local[:3, 3]
 
     def refresh(self, shared: SharedMap, known: Optional[int]) -> Optional[int]:
         """Copy the shared map into the field if it holds a version newer than `known`; that version, or None."""
@@ -355,14 +404,20 @@ class MapReplica:
 
     def add_keyframe(self, kf: Keyframe) -> None:
         self.newest = kf
-        self.observed.add_keyframe(surface_points(self.dirs_cam, kf, self.intr.width))
+        points = surface_points(self.dirs_cam, kf, self.intr.width)
+        self.handed.append((kf.number, points))
+        self.observed.add_keyframe(self._local(points))
 
     def refine(self, poses: dict) -> None:
         if self.newest is not None and self.newest.number in poses:
             self.newest.pose = torch.from_numpy(poses[self.newest.number])
 
     def newest_keyframe(self) -> Optional[Keyframe]:
-        return self.newest
+        """The newest keyframe handed over, its pose in the map's frame."""
+        if self.newest is None or self.anchor is None:
+            return self.newest
+        return dataclasses.replace(self.newest, pose=torch.from_numpy(
+            np.linalg.inv(self.anchor) @ self.newest.pose.double().numpy()).float())
 
 
 class TrackerWorker:
@@ -376,23 +431,29 @@ class TrackerWorker:
         self.epoch = ch.control.epoch
         self._new_state()
         self.tracked = 0
+        self.localizing = setup.cfg.run.mode == "localization" and setup.cfg.submaps.radius_m > 0
+        self.asked_at = -FOLLOW_EVERY  # (the frame count when it last asked the mapper for another submap)
         self.finished = False
         self.cores = CoreShare(ch.board, Counter.TRACKER_BUSY, Counter.MAPPER_BUSY, Counter.TRACKER_BEAT,
                                setup.threads, setup.cfg.runtime.lend_threads)
 
     def _new_state(self) -> None:
-        # The caller's copy of the trajectory has every field; this one what tracking reads back.
-        self.session = TrackingSession(self.cfg, self.intr, self.dirs_cam, TrackedTrajectory(essential=True))
+        # The caller's copy of the trajectory has every field; this one what tracking reads back. The mapper
+        # closes the loops (with submaps), from its own map checks.
+        frontend = TrackingFrontEnd(self.cfg, self.intr, self.dirs_cam, closes_loops=False)
+        self.session = TrackingSession(self.cfg, self.intr, self.dirs_cam, TrackedTrajectory(essential=True),
+                                       frontend)
         self.replica = MapReplica(self.cfg, self.intr, self.dirs_cam)
         self.map: Optional[SharedMap] = None
         self.map_version = -1
         if self.epoch == 0 and self.setup.checkpoint:  # the mapper publishes the loaded map and attaches us to it
             loaded = loaded_slam(self.setup.checkpoint, self.setup.cfg, self.setup.intrinsics)
-            self.replica.start(loaded.map.extent)
-            for kf in loaded.map.keyframes:
+            self.replica.start(loaded.map.extent)  # (the active submap's: the mapper's MapAttach says which)
+            for kf in loaded.atlas.to_world_keyframes(loaded.map):
                 self.replica.add_keyframe(kf)
+            frontend.start_lost(loaded.atlas.world_keyframes())
             self.session = TrackingSession(self.cfg, self.intr, self.dirs_cam, TrackedTrajectory.from_state_dict(
-                loaded.trajectory.state_dict(), essential=True), loaded.tracking.frontend)
+                loaded.trajectory.state_dict(), essential=True), frontend)
 
     def run(self) -> None:
         self.ch.to_parent.put(WorkerReady("tracker", os.getpid()))
@@ -441,7 +502,7 @@ class TrackerWorker:
             if msg.epoch == self.epoch:
                 if isinstance(msg, MapAttach):
                     self.map = SharedMap(self.ch.map_meta, msg.buffers, msg.generation)
-                    self.replica.attach(msg.extent)
+                    self.replica.attach(msg)
                     self.map_version = -1
                 elif isinstance(msg, Corrections):
                     self.session.apply(msg.corrections)
@@ -527,10 +588,24 @@ class TrackerWorker:
             with board.timed(Counter.TRACK_KEYFRAME_S):
                 kf = self.session.new_keyframe(pf, tracked)
                 self._hand_over(kf, None)  # (the mapper indexes it for relocalization: PlacesMessage)
+        if self.localizing and tracked.pose is not None:
+            self._follow(tracked.pose)
         self.tracked += 1
         board.add(Counter.TRACKED)
+        board.set(Counter.TRACKED_INDEX, pf.index)
+        board.set(Counter.TRACKED_STAMP, pf.timestamp)
         board.set(Counter.TRACKER_PEAK_MB, peak_rss_mb())
         board.set(Counter.TRACKER_DEVICE_PEAK_MB, device_peak_mb(self.replica.device))
+
+    def _follow(self, pose: TrackedPose) -> None:
+        """Localization makes no keyframe that would take the mapper to the next submap: the tracker tells it where
+        the camera is, every FOLLOW_EVERY frames and at once when a keyframe's features found it, and the mapper
+        attaches it to the submap the camera is in (Atlas.follow)."""
+        found = pose.relocalized_from
+        if (pose.lost and found is None) or (found is None and self.tracked - self.asked_at < FOLLOW_EVERY):
+            return
+        self.asked_at = self.tracked
+        self.ch.to_mapper.put(CameraAt(self.epoch, pose.pose.double().numpy()[:3, 3], found))
 
     def _prepare(self, item) -> PreparedFrame:
         with self.ch.board.timed(Counter.TRACK_PREPARE_S):
@@ -603,7 +678,7 @@ class MapperWorker:
         import_optimiser_code()
 
     def _new_state(self) -> None:
-        self.scene: Optional[SceneMap] = None
+        self.atlas: Optional[Atlas] = None  # the submaps (one, with submaps.radius_m 0); None before keyframe 0
         self.pending: deque = deque()  # keyframes received, not yet mapped
         self.map: Optional[SharedMap] = None
         self.steps_in_epoch = 0
@@ -614,16 +689,24 @@ class MapperWorker:
         # The keyframes for relocalization, indexed here and sent to the tracker's replica (places.py): a live
         # tracker that extracted their features and checked the map with them while frames waited dropped frames.
         cfg = self.cfg
-        self.places = KeyframePlaces(cfg.relocalization, self.intr, cfg.run.seed, publish=True) \
+        self.places = KeyframePlaces(cfg.relocalization, self.intr, cfg.run.seed, publish=True,
+                                     keep_checks=cfg.submaps.radius_m > 0 and cfg.submaps.loop_closure) \
             if cfg.relocalization.enabled and cfg.tracking.mode == "track" else None
+        self.attached_submap: Optional[int] = None  # the submap the tracker was last attached to
+        self.camera_at: Optional[CameraAt] = None  # localization: where the tracker says the camera is
         if self.epoch == 0 and self.setup.checkpoint:
-            self.scene = loaded_slam(self.setup.checkpoint, self.setup.cfg, self.setup.intrinsics).map
+            self.atlas = loaded_slam(self.setup.checkpoint, self.setup.cfg, self.setup.intrinsics).atlas
             if self.places is not None:
-                self.places.start_lost(self.scene.keyframes)
+                self.places.start_lost(self.atlas.world_keyframes())
             self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
             self.steps_in_epoch = 1
             self._publish()
             self._attach_tracker()
+
+    @property
+    def scene(self) -> Optional[SceneMap]:
+        """The active submap (the map, with one)."""
+        return None if self.atlas is None else self.atlas.active
 
     def run(self) -> None:
         self.ch.to_parent.put(WorkerReady("mapper", os.getpid()))
@@ -634,6 +717,7 @@ class MapperWorker:
             self._sync_epoch()
             self._serve_requests()
             self._receive(0.0 if self.pending else POLL_S)
+            self._follow_camera()
             if not self.pending:
                 self.cores.busy(False)
             if self.pending and not self.ch.control.stopping:
@@ -677,6 +761,8 @@ class MapperWorker:
     def _accept(self, msg) -> None:
         if isinstance(msg, KeyframeMessage):
             self.pending.append(msg)
+        elif isinstance(msg, CameraAt):
+            self.camera_at = msg
         elif isinstance(msg, TrackerFinished):
             self.tracker_done = True
 
@@ -684,7 +770,14 @@ class MapperWorker:
         self.ch.board.set(Counter.KEYFRAME_BACKLOG, len(self.pending) + int(self.mapping))
 
     def _keyframe_count(self) -> int:
-        return (self.scene.keyframes.made if self.scene is not None else 0) + len(self.pending)
+        """Keyframes received so far, mapped or waiting (the tracker numbers them 0, 1, ...)."""
+        if self.atlas is None:
+            made = 0
+        elif len(self.atlas.submaps) == 1:
+            made = self.scene.keyframes.made
+        else:  # (a submap's store counts its own, shared ones included)
+            made = max(self.atlas.owner) + 1
+        return made + len(self.pending)
 
     # ------------------------------------------------------------------------------------------- mapping steps
     def _map_next(self) -> None:
@@ -703,25 +796,32 @@ class MapperWorker:
             refined, loss = {}, self._start_map(self.pending.popleft())
             attach = not self.tracker_attached
         else:
-            field = self.scene.field
+            field, began = self.scene.field, set()
             with self.ch.board.timed(Counter.MAP_ADD_S):
                 for _ in range(self.budget.merged(len(self.pending)) + 1):  # behind: into the newest one's window
-                    self._add_keyframe(self.pending.popleft().keyframe())
+                    sub, new = self.atlas.place(self._indexed(self.pending.popleft().keyframe()))
+                    if new:
+                        began.add(sub.number)
             self._update_backlog()
-            attach = self.scene.field is not field  # grown: a new map, in new shared buffers
+            # Grown, or (submaps) another submap: a new map, in new shared buffers.
+            attach = self.scene.field is not field
             if attach:
                 self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
             with self.ch.board.timed(Counter.MAP_STEP_S):
-                step = self._step(lambda: self.scene.map_newest(self._after_regular_iteration,
-                                                                self.budget.step_iterations()))
-            loss, refined = (step.loss, {i: p.numpy().copy() for i, p in step.refined.items()}) if step else \
+                if self.scene.number in began:  # a submap begun: warmed up as the first map was
+                    step = self._step(lambda: self.scene.warm_up(self._after_iteration))
+                else:
+                    step = self._step(lambda: self.scene.map_newest(self._after_regular_iteration,
+                                                                    self.budget.step_iterations()))
+            loss, refined = (step.loss, {i: p.numpy().copy() for i, p in
+                                         self.atlas.to_world(self.scene, step.refined).items()}) if step else \
                 (float("nan"), {})
         version = self._publish()
         log.debug("mapper: step %d done in %.2f s (%d threads at the end), map version %d", self.steps,
                   time.perf_counter() - start, torch.get_num_threads(), version)
         if attach:
             self._attach_tracker()
-        dropped = self.scene.keyframes.take_dropped()
+        dropped = [n for n in self.scene.keyframes.take_dropped() if self.atlas.owns(self.scene, n)]
         if refined or dropped:
             self.ch.to_tracker.put(Corrections(self.epoch, PoseCorrections(refined, tuple(dropped))))
             if self.places is not None:
@@ -733,14 +833,16 @@ class MapperWorker:
         board.add(Counter.MAPPING_STEPS)
         board.set(Counter.MAPPER_PEAK_MB, peak_rss_mb())
         board.set(Counter.MAPPER_DEVICE_PEAK_MB, device_peak_mb(self.scene.device))
-        board.set(Counter.POINTS_OUTSIDE, self.scene.points_outside)
-        board.set(Counter.POINTS_SEEN, self.scene.points_seen)
+        board.set(Counter.POINTS_OUTSIDE, sum(sub.points_outside for sub in self.atlas.submaps))
+        board.set(Counter.POINTS_SEEN, sum(sub.points_seen for sub in self.atlas.submaps))
         with board.timed(Counter.MAP_MEASURE_S):
-            memory = self.scene.memory()
+            memory = self.atlas.memory()  # (summed over the submaps)
             consistency = self.scene.consistency() if self.scene.consistency_due() else None
         board.set(Counter.MAP_BYTES, memory["map_bytes"])
         board.set(Counter.KEYFRAME_BYTES, memory["keyframe_bytes"])
         board.set(Counter.KEYFRAMES_KEPT, memory["keyframes_kept"])
+        board.set(Counter.SUBMAPS, memory["submaps"])
+        board.set(Counter.LOOPS_CLOSED, memory["loops_closed"])
         if consistency is not None:
             board.set(Counter.CONSISTENCY_MM, consistency.median_mm)
             board.set(Counter.CONSISTENCY_AGREE, consistency.agree_fraction)
@@ -751,9 +853,10 @@ class MapperWorker:
     def _start_map(self, msg: KeyframeMessage) -> float:
         """The map of the first keyframe, over the extent the tracker chose, and its warm-up."""
         self._update_backlog()
-        self.scene = SceneMap(self.cfg, self.intr, self.dirs_cam)
+        self.atlas = Atlas(self.cfg, self.intr, self.dirs_cam)
+        self.atlas.new_submap(None)
         self.scene.start(msg.extent)
-        self._add_keyframe(msg.keyframe())
+        self.scene.add_keyframe(self.atlas.local(self.scene, self._indexed(msg.keyframe())))
         self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
         self.first_map_at = self.cfg.runtime.first_map_after
         try:
@@ -762,10 +865,11 @@ class MapperWorker:
             self.first_map_at = None
         return step.loss if step else float("nan")
 
-    def _add_keyframe(self, kf: Keyframe) -> None:
-        self.scene.add_keyframe(kf)
+    def _indexed(self, kf: Keyframe) -> Keyframe:
+        """A new keyframe (world pose), for relocalization and the map check too."""
         if self.places is not None:
             self.places.remember(kf)
+        return kf
 
     def _index_places(self) -> None:
         """Index the new keyframes and check the map with them (one keyframe, at most 45 ms: between two
@@ -779,13 +883,49 @@ class MapperWorker:
         done = self.places.take_done()
         if done:
             self.ch.to_tracker.put(PlacesMessage(self.epoch, done))
+        self._close_loops()
         check = self.places.check
         if check is not None:
             board.set(Counter.MAP_CHECK_CM, 100.0 * check.metres)
             board.set(Counter.MAP_CHECK, 2.0 if check.disagrees else 1.0)
 
+    def _close_loops(self) -> None:
+        """Keyframes placed by another submap's keyframes (loops, submaps/atlas.py): the graph solved, the moved
+        keyframes' poses sent to the tracker (after the active submap's new anchor) and to the parent."""
+        refined, board = {}, self.ch.board
+        for check in self.places.take_checks():  # (the frame the tracker is at is the first to see the correction)
+            refined.update(self.atlas.close_loop(check, int(board.get(Counter.TRACKED_INDEX)),
+                                                 board.get(Counter.TRACKED_STAMP)))
+        if not refined:
+            return
+        refined = {n: p.numpy().copy() for n, p in refined.items()}
+        self._publish()  # a new map version: the mesh follows the moved submaps
+        self._attach_tracker()
+        self.ch.to_tracker.put(Corrections(self.epoch, PoseCorrections(refined, ())))
+        self.places.refine(refined)
+        self.ch.to_parent.put(LoopClosed(self.epoch, refined))
+        board.set(Counter.LOOPS_CLOSED, self.atlas.loops)
+        board.set(Counter.LOOP_CORRECTION_S, self.atlas.closures[-1].seconds)
+
+    def _follow_camera(self) -> None:
+        """Localization: attach the tracker to the submap the camera is in (Atlas.follow), if another."""
+        if self.camera_at is None or self.atlas is None:
+            return
+        at, self.camera_at = self.camera_at, None
+        if self.atlas.follow(at.position, at.found_by).number != self.attached_submap:
+            self.map = SharedMap.create(self.ch.map_meta, self.scene.field)
+            self._publish()
+            self._attach_tracker()
+
     def _attach_tracker(self) -> None:
-        self.ch.to_tracker.put(MapAttach(self.epoch, self.map.buffers, self.map.generation, self.scene.extent))
+        """Tell the tracker where the map is; with submaps, the active one's anchor, and its observed space when
+        the tracker was attached to another."""
+        sub = self.scene
+        changed = sub.number != self.attached_submap and self.cfg.submaps.radius_m > 0
+        self.ch.to_tracker.put(MapAttach(self.epoch, self.map.buffers, self.map.generation, sub.extent, sub.number,
+                                         sub.anchor, copy.deepcopy(sub.observed) if changed else None,
+                                         max((kf.number for kf in sub.keyframes), default=-1)))
+        self.attached_submap = sub.number
         self.tracker_attached = True
 
     def _step(self, run, publish: bool = True):
@@ -809,7 +949,7 @@ class MapperWorker:
 
     def _publish(self, step_done: bool = True) -> int:
         # In the middle of a step the newest keyframe is not fitted yet.
-        mapped = self.scene.keyframes.made - (0 if step_done else 1)
+        mapped = self.scene.observed.added - (0 if step_done else 1)
         version = self.map.publish(self.scene.field, mapped)
         self.ch.board.add(Counter.PUBLISH_SECONDS, self.map.publish_seconds)
         self.ch.board.add(Counter.PUBLISHES)
@@ -844,7 +984,7 @@ class MapperWorker:
         state took the node 1-3 s per mesh on 2 cores, and stalled its poses)."""
         if req.epoch != self.epoch or self.scene is None:
             return None
-        return PackedSnapshot.of(snapshot_for_meshing(self.scene, req.have))
+        return PackedSnapshot.of(snapshot_for_meshing(self.atlas, req.have))
 
     def _snapshot(self, req: SnapshotRequest) -> Optional[str | bytes]:
         """The scene map (field, keyframes, window sampler): what a `SLAM` checkpoint needs besides the
@@ -861,16 +1001,19 @@ class MapperWorker:
             scene = SceneMap(self.cfg, self.intr, self.dirs_cam)
             scene.start(first.extent)
             scene.add_keyframe(first.keyframe())
+            state = scene.state_dict()
+        elif self.cfg.submaps.radius_m > 0:
+            state = self._atlas_state(req.min_keyframes)
         else:
-            scene = self.scene
-        state = scene.state_dict()
-        for msg in self.pending:  # received, not mapped yet: keyframes of the map all the same
-            if msg.number >= state["keyframes_made"]:
-                state["keyframes"].append(dict(msg.keyframe().__dict__))
-                state["keyframes_made"] = msg.number + 1
-        if req.min_keyframes:  # the parent's trajectory knows the first ones: a checkpoint holds those, not newer
-            state["keyframes"] = [kf for kf in state["keyframes"] if kf["number"] < req.min_keyframes]
-            state["keyframes_made"] = min(state["keyframes_made"], req.min_keyframes)
+            state = self.scene.state_dict()
+        if "atlas" not in state:
+            for msg in self.pending:  # received, not mapped yet: keyframes of the map all the same
+                if msg.number >= state["keyframes_made"]:
+                    state["keyframes"].append(dict(msg.keyframe().__dict__))
+                    state["keyframes_made"] = msg.number + 1
+            if req.min_keyframes:  # the parent's trajectory knows the first ones: a checkpoint holds those, not newer
+                state["keyframes"] = [kf for kf in state["keyframes"] if kf["number"] < req.min_keyframes]
+                state["keyframes_made"] = min(state["keyframes_made"], req.min_keyframes)
         # A file in shared memory: the bytes through the queue cost five copies and a pipe (0.8 s for the 55 MB of
         # a 300-frame ICL map, at the end of every offline run); a file costs one write and one read.
         if req.path:
@@ -883,6 +1026,23 @@ class MapperWorker:
         buf = io.BytesIO()
         torch.save(state, buf)
         return buf.getvalue()
+
+    def _atlas_state(self, min_keyframes: int) -> dict:
+        """The submaps and their pose graph (Atlas.state_dict) as a snapshot: the keyframes received and not mapped
+        yet in the active submap (its frame), and with `min_keyframes` only the keyframes the parent has seen."""
+        atlas = self.atlas.state_dict()
+        active = next(saved["map"] for saved in atlas["submaps"] if saved["number"] == self.scene.number)
+        to_local = np.linalg.inv(Atlas.anchor(self.scene))
+        for msg in self.pending:
+            kf = msg.keyframe()
+            kf.pose = torch.from_numpy(to_local @ kf.pose.double().numpy()).float()
+            active["keyframes"].append(dict(kf.__dict__))
+            atlas["owner"][kf.number] = self.scene.number
+        if min_keyframes:
+            for saved in atlas["submaps"]:
+                saved["map"]["keyframes"] = [kf for kf in saved["map"]["keyframes"] if kf["number"] < min_keyframes]
+            atlas["owner"] = {n: sub for n, sub in atlas["owner"].items() if n < min_keyframes}
+        return {"atlas": atlas}
 
 
 def mapper_main(setup: WorkerSetup, channels: Channels, errors) -> None:

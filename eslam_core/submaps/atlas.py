@@ -30,6 +30,7 @@ import torch
 
 from eslam_core.camera import Intrinsics
 from eslam_core.config import Config
+from eslam_core.mapping.extent import estimate_bound
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.scene_map import SceneMap
 from eslam_core.submaps.pose_graph import PoseGraph
@@ -47,13 +48,15 @@ OVERLAP_KEYFRAMES = 3
 @dataclass(frozen=True)
 class LoopClosure:
     """A loop the graph kept: keyframe `keyframe` (made at frame `revisit`) placed by keyframe `by` of another
-    submap, `metres` / `degrees` from where it was tracked; the map corrected at frame `corrected`."""
+    submap, `metres` / `degrees` from where it was tracked; the map corrected at frame `corrected`, `seconds` of
+    input after the revisit (frame stamps)."""
     keyframe: int
     by: int
     metres: float
     degrees: float
     revisit: int
     corrected: int
+    seconds: float = float("nan")
 
 
 def information(sigma_m: float, sigma_deg: float) -> np.ndarray:
@@ -134,6 +137,10 @@ class Atlas:
         return [replace(kf, pose=torch.from_numpy(A @ kf.pose.double().numpy()).float())
                 for kf in sub.keyframes if self.owns(sub, kf.number)]
 
+    def world_keyframes(self) -> list[Keyframe]:
+        """Every submap's own keyframes with world poses (a loaded map's, to relocalize against)."""
+        return [kf for sub in self.submaps for kf in self.to_world_keyframes(sub)]
+
     def overlap(self, previous: SceneMap, sub: SceneMap) -> list[Keyframe]:
         """The newest OVERLAP_KEYFRAMES keyframes of the submap the camera leaves, in the new one's frame: a new
         submap mapped from its first keyframe alone tracked worse than the map it left (long room, 1 m submaps: ATE
@@ -146,8 +153,12 @@ class Atlas:
     def submap_for(self, kf: Keyframe) -> Optional[SceneMap]:
         """Where a new keyframe goes: the active submap while the camera is within `submaps.radius_m` of its
         centre, else the nearest other one within it (made active); None: a new submap is due there."""
+        return self.submap_at(kf.pose.double().numpy()[:3, 3], f"keyframe {kf.number}")
+
+    def submap_at(self, position: np.ndarray, what: str = "the camera") -> Optional[SceneMap]:
+        """The submap for a camera at `position` (world): the active one while within `submaps.radius_m` of its
+        centre, else the nearest other one within it (made active); None: none is (the active one stays)."""
         radius = self.cfg.submaps.radius_m
-        position = kf.pose.double().numpy()[:3, 3]
         if radius <= 0 or np.linalg.norm(position - self.centre(self.active)) <= radius:
             return self.active
         distances = [np.linalg.norm(position - self.centre(s)) for s in self.submaps]
@@ -155,10 +166,46 @@ class Atlas:
         if distances[nearest] > radius:
             return None
         if self.submaps[nearest] is not self.active:
-            log.info("keyframe %d: back in submap %d (%.1f m from its centre)", kf.number, nearest,
-                     distances[nearest])
+            log.info("%s: back in submap %d (%.1f m from its centre)", what, nearest, distances[nearest])
             self.active = self.submaps[nearest]
         return self.active
+
+    def place(self, kf: Keyframe) -> tuple[SceneMap, bool]:
+        """A new keyframe (world pose) into its submap (`submap_for`), or into a new submap begun there, over the
+        keyframe's own view and sharing the newest keyframes of the one left (`overlap`). Returns the submap and
+        whether it began with this keyframe (to be warmed up as the first map was)."""
+        sub = self.submap_for(kf)
+        if sub is not None:
+            sub.add_keyframe(self.local(sub, kf))
+            return sub, False
+        previous = self.active
+        sub = self.new_submap(anchored_at(kf.pose.double().numpy()))
+        local = self.local(sub, kf)
+        sub.start(estimate_bound(local.depth_image().numpy(), self.intr, local.pose.double().numpy(),
+                                 self.cfg.scene.bound_margin, self.cfg.model.coarse_resolution))
+        sub.add_keyframe(local)
+        for shared in self.overlap(previous, sub):
+            sub.add_keyframe(shared)
+        log.info("keyframe %d: submap %d begins (%d submaps)", kf.number, sub.number, len(self.submaps))
+        return sub, True
+
+    def follow(self, position: np.ndarray, found_by: Optional[int] = None) -> SceneMap:
+        """The submap to track a camera at `position` (world) against when it makes no keyframe (localization): the
+        submap of the keyframe whose features found it (`found_by`, a relocalization), else the one whose centre
+        is nearest, once nearer than the active one's by a quarter of `submaps.radius_m` (no flapping at a
+        border). Made active, returned."""
+        if found_by is not None and found_by in self.owner:
+            chosen = self.submaps[self.owner[found_by]]
+        else:
+            distances = [np.linalg.norm(position - self.centre(s)) for s in self.submaps]
+            nearest = int(np.argmin(distances))
+            own = distances[self.active.number]
+            chosen = self.submaps[nearest] if own - distances[nearest] > 0.25 * self.cfg.submaps.radius_m \
+                else self.active
+        if chosen is not self.active:
+            log.info("the camera is in submap %d now", chosen.number)
+            self.active = chosen
+        return chosen
 
     # ---------------------------------------------------------------------------------------------- loops
     def keyframe_pose(self, number: int) -> Optional[np.ndarray]:
@@ -167,9 +214,9 @@ class Atlas:
         i = None if sub is None else sub.keyframes.position(number)
         return None if i is None else self.anchor(sub) @ sub.keyframes[i].pose.double().numpy()
 
-    def close_loop(self, check: MapCheck, frame: int = -1) -> dict:
+    def close_loop(self, check: MapCheck, frame: int = -1, stamp: float = float("nan")) -> dict:
         """A keyframe placed by another submap's keyframe (`check`) as a loop edge: the graph solved and the
-        submaps moved, at frame `frame`. Returns the corrections (keyframe number -> world pose), empty where the
+        submaps moved, at frame `frame` (stamped `stamp`). Returns the corrections (keyframe number -> world pose), empty where the
         check is no loop (the same submap) or the graph refused it."""
         if not self.cfg.submaps.loop_closure or check.placed is None:
             return {}
@@ -189,7 +236,8 @@ class Atlas:
         self.loops = sum(e.loop for e in self.graph.edges) - len(solution.rejected)
         kf = self.submaps[j].keyframes[self.submaps[j].keyframes.position(check.keyframe)]
         self.closures.append(LoopClosure(int(check.keyframe), int(check.by), float(check.metres),
-                                         float(check.degrees), int(kf.frame_index), int(frame)))
+                                         float(check.degrees), int(kf.frame_index), int(frame),
+                                         float(stamp) - float(kf.timestamp)))
         self.graph.initial.update(solution.poses)  # (the next solve starts from here)
         corrections = {}
         for sub in self.submaps:

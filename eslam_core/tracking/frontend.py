@@ -122,7 +122,9 @@ class TrackedPose:
 
 
 class TrackingFrontEnd:
-    def __init__(self, cfg: Config, intr: Intrinsics, dirs_cam: torch.Tensor):
+    def __init__(self, cfg: Config, intr: Intrinsics, dirs_cam: torch.Tensor, closes_loops: bool = True):
+        """`closes_loops`: the caller takes the map checks as loop closure's candidates (with submaps); the
+        pipelined runtime's tracker does not (its mapper closes the loops)."""
         self.cfg, self.intr, self.dirs_cam = cfg, intr, dirs_cam
         self.tracker = make_tracker(cfg, dirs_cam, intr) if cfg.tracking.mode == "track" else None
         self.map_from_odom: Optional[np.ndarray] = None  # fixed by the first frame that carries odometry
@@ -147,7 +149,8 @@ class TrackingFrontEnd:
         self.places: Optional[KeyframePlaces] = None
         if cfg.relocalization.enabled and self.tracker is not None:
             self.places = KeyframePlaces(cfg.relocalization, intr, cfg.run.seed,
-                                         keep_checks=cfg.submaps.radius_m > 0 and cfg.submaps.loop_closure)
+                                         keep_checks=closes_loops and cfg.submaps.radius_m > 0
+                                         and cfg.submaps.loop_closure)
 
     def start_lost(self, keyframes) -> None:
         """A loaded map: the camera is not where the map ended, it has to be found against the map's keyframes."""
