@@ -5,6 +5,7 @@ the trajectory."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 import multiprocessing
 import os
@@ -19,6 +20,7 @@ from eslam_core.camera import Frame
 from eslam_core.config import ConfigError, load_config
 from eslam_core.demo import mesh_scores
 from eslam_core.map_file import read_checkpoint
+from eslam_core.mapping.scene_map import surface_points
 from eslam_core.outputs.export import submap_mesh
 from eslam_core.outputs.mesh import save_ply
 from eslam_core.runtime import make_runtime, workers
@@ -236,7 +238,7 @@ def test_the_mapper_closes_a_loop_and_moves_the_tracker_and_the_trajectory(mappe
 def test_the_tracker_follows_the_submap_it_is_attached_to(mapped, long_room):
     """The tracker's replica of another submap: its observed space as the mapper sends it, plus the keyframes the
     tracker handed over since; the newest keyframe in that submap's frame."""
-    atlas = mapped.atlas  # (as mapped: a loaded map's keyframes are all settled)
+    atlas = mapped.atlas
     sub = atlas.submaps[-1]
     replica = workers.MapReplica(mapped.cfg, mapped.intr, mapped.dirs_cam)
     replica.start(atlas.submaps[0].extent)
@@ -244,15 +246,18 @@ def test_the_tracker_follows_the_submap_it_is_attached_to(mapped, long_room):
     replica.add_keyframe(older)
     replica.add_keyframe(newest)
     observed = copy.deepcopy(sub.observed)
-    observed.pending.pop()  # as the mapper had it before the newest keyframe came
+    waiting = len(observed.pending)
+    # As the mapper had it when it held keyframes up to `older`: the newest is added back, in the submap's frame.
     replica.attach(workers.MapAttach(0, torch.zeros(2, 1), 1, sub.extent, sub.number, sub.anchor, observed,
                                      older.number))
     assert replica.submap == sub.number and np.array_equal(replica.extent, sub.extent)
-    assert len(replica.observed.pending) == len(sub.observed.pending)  # the newest one added back, in its frame
-    assert torch.allclose(replica.observed.pending[-1], sub.observed.pending[-1], atol=1e-4)
+    assert replica.observed is observed and len(observed.pending) == waiting + 1
+    newest_local = dataclasses.replace(newest, pose=torch.from_numpy(
+        np.linalg.inv(sub.anchor) @ newest.pose.double().numpy()).float())
+    assert torch.allclose(observed.pending[-1], surface_points(mapped.dirs_cam, newest_local, mapped.intr.width),
+                          atol=1e-4)
     local = replica.newest_keyframe()
-    assert np.allclose(local.pose.double().numpy(), np.linalg.inv(sub.anchor) @ newest.pose.double().numpy(),
-                       atol=1e-5)
+    assert np.allclose(local.pose.double().numpy(), newest_local.pose.double().numpy(), atol=1e-5)
 
 
 def test_live_mesh_blocks_of_submaps_lie_on_the_surface_and_move_with_their_submap(mapped, long_room):

@@ -101,12 +101,6 @@ class ObservedSurfaces:
     def add_keyframe(self, points: torch.Tensor) -> None:
         self.pending.append(points)
 
-    @property
-    def added(self) -> int:
-        """Keyframes added (the count that `mapped` takes: a submap's keyframes or a loaded map's are not numbered
-        from 0)."""
-        return self.settled_count + len(self.pending)
-
     def mapped(self, keyframes: int) -> None:
         """The map is now fitted to the first `keyframes` keyframes."""
         observed, settled = (min(keyframes, max(1, keyframes - lag)) for lag in (1, self.after))

@@ -949,7 +949,7 @@ class MapperWorker:
 
     def _publish(self, step_done: bool = True) -> int:
         # In the middle of a step the newest keyframe is not fitted yet.
-        mapped = self.scene.observed.added - (0 if step_done else 1)
+        mapped = self.scene.keyframes.made - (0 if step_done else 1)
         version = self.map.publish(self.scene.field, mapped)
         self.ch.board.add(Counter.PUBLISH_SECONDS, self.map.publish_seconds)
         self.ch.board.add(Counter.PUBLISHES)
