@@ -160,7 +160,7 @@ def main() -> int:
                     help="seconds of input per profile interval (first and last compared at the end)")
     ap.add_argument("--policy", choices=("offline", "live"), default="offline",
                     help="offline: every frame, as fast as SLAM goes; live: frames at 30 Hz of wall time, the "
-                         "tracker takes the newest (the ROS node's default)")
+                         "tracker skips to the newest frame beyond runtime.live_backlog waiting (the ROS node's default)")
     ap.add_argument("--out", default="runs/soak.json")
     args = ap.parse_args()
 

@@ -1,7 +1,8 @@
 """The single-process runtime: the lock-step `SLAM` on a background thread, behind the runtime API.
 
 Frames wait in a bounded queue (offline: `submit` blocks while it is full; live: the oldest pending frame makes
-room, and the SLAM thread always takes the newest frame, skipping the others). The SLAM thread tracks each frame
+room, and the SLAM thread takes the oldest waiting frame while at most `runtime.live_backlog` more wait behind
+it, else skips to the newest: api.frames_to_skip). The SLAM thread tracks each frame
 and, every `mapping.every` frames, maps, exactly as `eslam run --workers 1` does. A copy of the trajectory is kept
 up to date after every step, so `trajectory()` never waits for the step in progress; checkpoints and meshes are
 made from a copy of the SLAM state taken between two steps.
