@@ -57,6 +57,12 @@ class Keyframe:
         d16 = (d / DEPTH_STEP + 0.5).to(torch.int32).to(torch.int16).cpu()  # stores uint16 bits in int16
         return Keyframe(frame_index, timestamp, rgb8, d16, usable.cpu().clone(), pose.detach().cpu().clone(), number)
 
+    def moved(self, T: np.ndarray) -> "Keyframe":
+        """The keyframe with its pose seen from another frame (`T` @ pose, T 4x4: a submap's anchor or its
+        inverse); the images shared."""
+        return replace(self, pose=torch.from_numpy(np.asarray(T, dtype=np.float64) @ self.pose.double().numpy())
+                       .float())
+
     def reduced(self) -> "Keyframe":
         s, o = REDUCED_STRIDE, REDUCED_STRIDE // 2
         return replace(self, rgb=self.rgb[o::s, o::s].clone(), depth=self.depth[o::s, o::s].clone(),

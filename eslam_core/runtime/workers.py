@@ -416,8 +416,7 @@ class MapReplica:
         """The newest keyframe handed over, its pose in the map's frame."""
         if self.newest is None or self.anchor is None:
             return self.newest
-        return dataclasses.replace(self.newest, pose=torch.from_numpy(
-            np.linalg.inv(self.anchor) @ self.newest.pose.double().numpy()).float())
+        return self.newest.moved(np.linalg.inv(self.anchor))
 
 
 class TrackerWorker:
@@ -1034,8 +1033,7 @@ class MapperWorker:
         active = next(saved["map"] for saved in atlas["submaps"] if saved["number"] == self.scene.number)
         to_local = np.linalg.inv(Atlas.anchor(self.scene))
         for msg in self.pending:
-            kf = msg.keyframe()
-            kf.pose = torch.from_numpy(to_local @ kf.pose.double().numpy()).float()
+            kf = msg.keyframe().moved(to_local)
             active["keyframes"].append(dict(kf.__dict__))
             atlas["owner"][kf.number] = self.scene.number
         if min_keyframes:

@@ -22,7 +22,7 @@ corrections that the trajectory, relocalization and the outputs follow (Tracking
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from typing import Optional
 
 import numpy as np
@@ -114,8 +114,7 @@ class Atlas:
     def local(self, sub: SceneMap, kf: Keyframe) -> Keyframe:
         """The keyframe as its submap keeps it: its pose in the submap's frame (the images are shared)."""
         self.owner[kf.number] = sub.number
-        local = kf if sub.anchor is None else \
-            replace(kf, pose=torch.from_numpy(np.linalg.inv(sub.anchor) @ kf.pose.double().numpy()).float())
+        local = kf if sub.anchor is None else kf.moved(np.linalg.inv(sub.anchor))
         if sub.centre is None:
             sub.centre = local.pose.double().numpy()[:3, 3].copy()
         return local
@@ -133,9 +132,7 @@ class Atlas:
 
     def to_world_keyframes(self, sub: SceneMap) -> list[Keyframe]:
         """A submap's own keyframes with world poses (the images shared): what relocalization indexes."""
-        A = self.anchor(sub)
-        return [replace(kf, pose=torch.from_numpy(A @ kf.pose.double().numpy()).float())
-                for kf in sub.keyframes if self.owns(sub, kf.number)]
+        return [kf.moved(self.anchor(sub)) for kf in sub.keyframes if self.owns(sub, kf.number)]
 
     def world_keyframes(self) -> list[Keyframe]:
         """Every submap's own keyframes with world poses (a loaded map's, to relocalize against)."""
@@ -147,18 +144,13 @@ class Atlas:
         1.2 cm against 0.8 for one map); shared, they map the new submap's first views from the same places."""
         to_new = np.linalg.inv(self.anchor(sub)) @ self.anchor(previous)
         newest = sorted((kf for kf in previous.keyframes if kf.stride == 1), key=lambda kf: kf.number)
-        return [replace(kf, pose=torch.from_numpy(to_new @ kf.pose.double().numpy()).float())
-                for kf in newest[-OVERLAP_KEYFRAMES:]]
+        return [kf.moved(to_new) for kf in newest[-OVERLAP_KEYFRAMES:]]
 
     def submap_for(self, kf: Keyframe) -> Optional[SceneMap]:
         """Where a new keyframe goes: the active submap while the camera is within `submaps.radius_m` of its
         centre, else the nearest other one within it (made active); None: a new submap is due there."""
-        return self.submap_at(kf.pose.double().numpy()[:3, 3], f"keyframe {kf.number}")
-
-    def submap_at(self, position: np.ndarray, what: str = "the camera") -> Optional[SceneMap]:
-        """The submap for a camera at `position` (world): the active one while within `submaps.radius_m` of its
-        centre, else the nearest other one within it (made active); None: none is (the active one stays)."""
         radius = self.cfg.submaps.radius_m
+        position = kf.pose.double().numpy()[:3, 3]
         if radius <= 0 or np.linalg.norm(position - self.centre(self.active)) <= radius:
             return self.active
         distances = [np.linalg.norm(position - self.centre(s)) for s in self.submaps]
@@ -166,7 +158,8 @@ class Atlas:
         if distances[nearest] > radius:
             return None
         if self.submaps[nearest] is not self.active:
-            log.info("%s: back in submap %d (%.1f m from its centre)", what, nearest, distances[nearest])
+            log.info("keyframe %d: back in submap %d (%.1f m from its centre)", kf.number, nearest,
+                     distances[nearest])
             self.active = self.submaps[nearest]
         return self.active
 
@@ -216,8 +209,8 @@ class Atlas:
 
     def close_loop(self, check: MapCheck, frame: int = -1, stamp: float = float("nan")) -> dict:
         """A keyframe placed by another submap's keyframe (`check`) as a loop edge: the graph solved and the
-        submaps moved, at frame `frame` (stamped `stamp`). Returns the corrections (keyframe number -> world pose), empty where the
-        check is no loop (the same submap) or the graph refused it."""
+        submaps moved, at frame `frame` (stamped `stamp`). Returns the corrections (keyframe number -> world pose),
+        empty where the check is no loop (the same submap) or the graph refused it."""
         if not self.cfg.submaps.loop_closure or check.placed is None:
             return {}
         i, j = self.owner.get(check.by), self.owner.get(check.keyframe)
