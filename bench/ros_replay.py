@@ -257,6 +257,7 @@ def main() -> int:
     known = [(s, truth[i]) for i, s in enumerate(bag_stamps) if truth[i] is not None and s in listener.poses]
     ate_cm = None
     if args.trajectory is not None and stamps:
+        args.trajectory.parent.mkdir(parents=True, exist_ok=True)
         write_tum(args.trajectory, Trajectory(np.array(stamps), np.stack([listener.poses[s][1] for s in stamps])))
     flagged = None
     if len(known) >= 3:
