@@ -236,7 +236,9 @@ def main() -> int:
     def score_lap(lap: int) -> None:
         """The lap's ATE from the poses as tracked (printed while the soak goes on)."""
         first = lap_ends[lap - 1] if lap else 0
-        sel = [j for j in range(first, lap_ends[lap]) if np.isfinite(latency[j]) and truth[source[j]] is not None]
+        posed_here = [j for j in range(first, lap_ends[lap]) if np.isfinite(latency[j])]
+        # (ICL's first frame has no reference pose: tracked, it counts, but not in the ATE)
+        sel = [j for j in posed_here if truth[source[j]] is not None]
         if len(sel) < 3:
             return
         t = np.array(sel, dtype=np.float64) / FPS
@@ -244,8 +246,13 @@ def main() -> int:
                   Trajectory(t, np.stack([truth[source[j]] for j in sel])), max_dt=1e-6).rmse
         lap_ate.append(100.0 * err)
         played = lap_ends[lap] - first
-        laps_out.append({"lap": lap + 1, "played": played, "tracked": len(sel), "ate_cm": lap_ate[-1]})
-        print(f"lap {lap + 1:3d}: ATE {lap_ate[-1]:.2f} cm, {len(sel)} of {played} frames tracked", flush=True)
+        # (which of the data set's frames went without a pose: the same ones lap after lap point at a cause)
+        missed = [int(source[j]) for j in range(first, lap_ends[lap]) if not np.isfinite(latency[j])]
+        laps_out.append({"lap": lap + 1, "played": played, "tracked": len(posed_here), "ate_cm": lap_ate[-1],
+                         "missed": missed})
+        print(f"lap {lap + 1:3d}: ATE {lap_ate[-1]:.2f} cm, {len(posed_here)} of {played} frames tracked"
+              + (f" (without a pose: frames {', '.join(map(str, missed[:8]))}{' ...' if len(missed) > 8 else ''})"
+                 if missed else ""), flush=True)
 
     k = 0
     next_interval = args.interval * FPS
