@@ -90,8 +90,7 @@ class SLAM:
         if refined or dropped:
             self.tracking.apply(PoseCorrections(refined, dropped))
         pose = tracked.pose
-        if self.cfg.run.mode == "localization" and len(self.atlas.submaps) > 1 and \
-                (not pose.lost or pose.relocalized_from is not None):
+        if self.cfg.run.mode == "localization" and (not pose.lost or pose.relocalized_from is not None):
             self.atlas.follow(pose.pose.double().numpy()[:3, 3], pose.relocalized_from)  # (no keyframe places it)
         return StepResult(pf.index, self.trajectory.pose(n), pose.loss, pose.keyframe, mapping_loss, refined,
                           pose.quality.value, pose.lost, tracked.anchor, pose.covariance_matrix,

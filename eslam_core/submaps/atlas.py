@@ -187,6 +187,8 @@ class Atlas:
         submap of the keyframe whose features found it (`found_by`, a relocalization), else the one whose centre
         is nearest, once nearer than the active one's by a quarter of `submaps.radius_m` (no flapping at a
         border). Made active, returned."""
+        if len(self.submaps) < 2:  # (a one-map checkpoint's submap has no centre: nothing to follow)
+            return self.active
         if found_by is not None and found_by in self.owner:
             chosen = self.submaps[self.owner[found_by]]
         else:
