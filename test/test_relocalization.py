@@ -148,6 +148,27 @@ def test_a_removed_keyframe_is_not_matched(room):
     assert len(copy) == len(db) - 1
 
 
+def test_the_bag_of_words_kept_up_to_date_ranks_as_one_recounted(room):
+    """Keyframes added and removed after the vocabulary was built (their words counted one at a time) are ranked by
+    words as by a database that counted every keyframe afresh (loaded from the state dict)."""
+    scene, poses, db = room
+    churned = KeyframeDatabase(RelocalizationConfig(retrieval="words", candidates=len(KEYFRAMES) + 1))
+    for i in KEYFRAMES:
+        churned.insert(db.entries[i])
+    churned.build_vocabulary()
+    churned.remove(60)
+    churned.remove(90)
+    churned.insert(db.entries[90])
+    rgb, depth = render(scene, poses[75], 75)
+    churned.add(75, rgb, depth, poses[75], INTR)
+    recounted = KeyframeDatabase.from_state_dict(churned.state_dict())
+    for i in churned.entries:
+        query = churned.query_of(i)
+        ranked = churned.candidates(query)
+        assert ranked[0] == i and len(ranked) == len(churned)
+        assert ranked == recounted.candidates(recounted.query_of(i))
+
+
 def test_binary_vocabulary_words_are_near_their_descriptors():
     """k-majority clustering: descriptors drawn around 8 centres end up nearest to a word near their centre."""
     rng = np.random.default_rng(0)

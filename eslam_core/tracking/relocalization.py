@@ -199,11 +199,16 @@ def binary_vocabulary(descriptors: np.ndarray, words: int, rng: np.random.Genera
     return centres
 
 
-def word_histogram(word_ids: np.ndarray, idf: np.ndarray) -> np.ndarray:
-    """TF-IDF vector of a bag of words, unit length."""
-    v = np.bincount(word_ids, minlength=len(idf)).astype(np.float64) * idf
-    n = np.linalg.norm(v)
-    return v / n if n > 0 else v
+def term_counts(word_ids: np.ndarray, words: int) -> np.ndarray:
+    """How often each of the vocabulary's `words` occurs in a bag of words."""
+    return np.bincount(word_ids, minlength=words).astype(np.float64)
+
+
+def tf_idf(counts: np.ndarray, idf: np.ndarray) -> np.ndarray:
+    """TF-IDF vectors of term counts (..., words), each of unit length."""
+    v = counts * idf
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.divide(v, n, out=np.zeros_like(v), where=n > 0)
 
 
 # ------------------------------------------------------------------------------------------------ database
@@ -229,7 +234,7 @@ class _Query:
     descriptors: np.ndarray
     depth: np.ndarray  # (N,) measured depth at each keypoint, 0 = none
     thumbnail: np.ndarray
-    histogram: Optional[np.ndarray] = None  # its bag of words, where known (a stored keyframe's)
+    term_counts: Optional[np.ndarray] = None  # its bag of words, where known (a stored keyframe's)
 
 
 class KeyframeDatabase:
@@ -241,8 +246,11 @@ class KeyframeDatabase:
         self.seed = seed
         self._vocabulary: Optional[np.ndarray] = None
         self._vocabulary_from = 0  # descriptors in the database when the vocabulary was built
-        self._idf: Optional[np.ndarray] = None
-        self._histograms: dict[int, np.ndarray] = {}
+        # The bag of words, kept up to date one keyframe at a time (a revisit's keyframes come and go for hours:
+        # recounting every keyframe's words on each made indexing slower as the store filled).
+        self._term_counts: dict[int, np.ndarray] = {}  # per keyframe, as words are counted (term_counts)
+        self._documents: Optional[np.ndarray] = None  # (words,) keyframes in which each word occurs
+        self._descriptors = 0  # in all entries
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -266,30 +274,36 @@ class KeyframeDatabase:
 
     def remove(self, keyframe_id: int) -> None:
         """Forget a keyframe (e.g. one the keyframe budget dropped)."""
-        self.entries.pop(int(keyframe_id), None)
-        self._histograms.pop(int(keyframe_id), None)
-        if self._vocabulary is not None and self.entries:
-            self._update_weights()
+        entry = self.entries.pop(int(keyframe_id), None)
+        if entry is None:
+            return
+        self._descriptors -= len(entry.descriptors)
+        counts = self._term_counts.pop(entry.keyframe_id, None)
+        if counts is not None:
+            self._documents -= counts > 0
 
     def insert(self, entry: KeyframeEntry) -> None:
         """A keyframe indexed elsewhere (its features extracted by another database's `add`)."""
         self._insert(entry)
 
-    def _insert(self, entry: KeyframeEntry, reweigh: bool = True) -> None:
+    def _insert(self, entry: KeyframeEntry) -> None:
+        self.remove(entry.keyframe_id)
         self.entries[entry.keyframe_id] = entry
+        self._descriptors += len(entry.descriptors)
         if self._vocabulary is not None:
-            entry.words = hamming_nearest(entry.descriptors, self._vocabulary)
-            if reweigh:
-                self._update_weights()
+            self._count_words(entry)
 
-    def _descriptor_count(self) -> int:
-        return sum(len(e.descriptors) for e in self.entries.values())
+    def _count_words(self, entry: KeyframeEntry) -> None:
+        entry.words = hamming_nearest(entry.descriptors, self._vocabulary)
+        counts = term_counts(entry.words, len(self._vocabulary))
+        self._term_counts[entry.keyframe_id] = counts
+        self._documents += counts > 0
 
     def build_vocabulary(self) -> None:
         """(Re)build the vocabulary from the keyframes' descriptors if they have doubled since the last build: the
         words then fit the scene, and the cost stays amortised over the keyframes added. The first query does it
         when needed; call it beforehand (e.g. after loading a map) to keep that cost off the first lost frame."""
-        total = self._descriptor_count()
+        total = self._descriptors
         if total == 0 or (self._vocabulary is not None and total < 2 * self._vocabulary_from):
             return
         rng = np.random.default_rng(self.seed)
@@ -299,18 +313,16 @@ class KeyframeDatabase:
             descriptors = descriptors[rng.choice(len(descriptors), 10 * words, replace=False)]
         self._vocabulary = binary_vocabulary(descriptors, words, rng)
         self._vocabulary_from = total
-        for e in self.entries.values():
-            e.words = hamming_nearest(e.descriptors, self._vocabulary)
-        self._update_weights()
+        self._recount_words()
 
-    def _update_weights(self) -> None:
-        """Inverse document frequency of each word over the keyframes, and the keyframes' TF-IDF vectors."""
-        n_words = len(self._vocabulary)
-        documents = np.zeros(n_words)
+    def _recount_words(self) -> None:
+        self._term_counts, self._documents = {}, np.zeros(len(self._vocabulary), np.int64)
         for e in self.entries.values():
-            documents[np.unique(e.words)] += 1
-        self._idf = np.log((len(self.entries) + 1) / (documents + 1))
-        self._histograms = {k: word_histogram(e.words, self._idf) for k, e in self.entries.items()}
+            self._count_words(e)
+
+    def _idf(self) -> np.ndarray:
+        """Inverse document frequency of each word over the keyframes."""
+        return np.log((len(self.entries) + 1) / (self._documents + 1))
 
     # -------------------------------------------------------------------------------------------- querying
     def relocalize(self, rgb: np.ndarray, depth: np.ndarray, intr: Intrinsics) -> Optional[Relocalization]:
@@ -344,10 +356,15 @@ class KeyframeDatabase:
         if not older or len(entry.descriptors) < self.cfg.min_inliers:
             return None
         self.build_vocabulary()
-        query = _Query(entry.keypoints, entry.descriptors, entry.points_cam[:, 2], entry.thumbnail,
-                       self._histograms.get(entry.keyframe_id))
+        query = self.query_of(keyframe_id)
         candidates = list(dict.fromkeys(self.nearby(entry.pose, older) + self.candidates(query, older)))
         return (yield from self._best_steps(query, candidates, intr))
+
+    def query_of(self, keyframe_id: int) -> _Query:
+        """A stored keyframe as a query (its own features, thumbnail and words)."""
+        entry = self.entries[int(keyframe_id)]
+        return _Query(entry.keypoints, entry.descriptors, entry.points_cam[:, 2], entry.thumbnail,
+                      self._term_counts.get(entry.keyframe_id))
 
     def nearby(self, pose: np.ndarray, among: list[int]) -> list[int]:
         """The `candidates` keyframes of `among` nearest to `pose` (4x4) that look the same way (optical axes within
@@ -392,9 +409,10 @@ class KeyframeDatabase:
             rankings.append([ids[j] for j in np.argsort(-by_thumbnail, kind="stable")[:k]])
         if how in ("both", "words"):
             self.build_vocabulary()
-            h = query.histogram if query.histogram is not None else \
-                word_histogram(hamming_nearest(query.descriptors, self._vocabulary), self._idf)
-            by_words = np.array([float(self._histograms[i] @ h) for i in ids])
+            idf = self._idf()
+            counts = query.term_counts if query.term_counts is not None else \
+                term_counts(hamming_nearest(query.descriptors, self._vocabulary), len(idf))
+            by_words = tf_idf(np.stack([self._term_counts[i] for i in ids]), idf) @ tf_idf(counts, idf)
             rankings.append([ids[j] for j in np.argsort(-by_words, kind="stable")[:k]])
         ordered = [i for group in zip(*rankings) for i in group]
         return list(dict.fromkeys(ordered))
@@ -469,11 +487,10 @@ class KeyframeDatabase:
         db = KeyframeDatabase(RelocalizationConfig(**state["config"]), seed=int(state["seed"]))
         if state["vocabulary"] is not None:
             db._vocabulary, db._vocabulary_from = state["vocabulary"].numpy(), int(state["vocabulary_from"])
+            db._documents = np.zeros(len(db._vocabulary), np.int64)
         for kf in state["keyframes"]:
             db._insert(KeyframeEntry(int(kf["id"]), kf["keypoints"].numpy(), kf["descriptors"].numpy(),
-                              kf["points_cam"].numpy(), kf["thumbnail"].numpy(), kf["pose"].numpy()), reweigh=False)
-        if db._vocabulary is not None and db.entries:
-            db._update_weights()
+                                     kf["points_cam"].numpy(), kf["thumbnail"].numpy(), kf["pose"].numpy()))
         return db
 
 
