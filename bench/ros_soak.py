@@ -10,8 +10,11 @@ runtime, the mesh process), as `bench/ros_replay.py` starts it. Latency is from 
 here to the arrival here of the pose stamped with it.
 
 Every `--interval` seconds of input (default 10 minutes) it prints the frames published, the poses received for
-them, the latency (median, p90) and the resident memory of each of the node's processes; after each lap the ATE of
-its published poses. Targets (an hour live): poses for >= 99 % of the frames in every interval, the last
+them, the latency (median, p90), the resident memory of each of the node's processes, their CPU time, page faults
+and lost cores a frame, and the speed probe (bench/soak.py: a fixed piece of work every 5 s, the machine's own
+speed); after each lap the ATE of its published poses. At the end, the first and the last interval side by side:
+a latency that rises with a process's CPU a frame while the probe stays is the run's growth, one that rises with the
+probe is the machine's. Targets (an hour live): poses for >= 99 % of the frames in every interval, the last
 interval's median latency within 10 % of the first's. Writes JSON.
 """
 from __future__ import annotations
@@ -33,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ros_replay import TOPICS, process_tree_cpu, start_node, warmed_up  # noqa: E402
-from soak import lap_order, memory_mb  # noqa: E402
+from soak import PROBE_EVERY, lap_order, memory_mb, process_counters, speed_probe_ms  # noqa: E402
 
 from eslam_core.datasets import open_dataset  # noqa: E402
 from eslam_core.evaluation.trajectory_error import ate  # noqa: E402
@@ -107,17 +110,53 @@ def node_rss(root: int) -> dict[str, float]:
     return out
 
 
-def interval_row(number: int, stamps: list, published: dict, poses: dict, rss: dict) -> dict:
+def node_counters(root: int) -> dict[int, tuple[str, dict[str, float]]]:
+    """process_counters (CPU seconds, page faults, context switches so far) and name of each of the node's
+    processes, by pid."""
+    return {pid: (name, process_counters(pid)) for pid, (name, _) in process_tree_cpu(root).items()}
+
+
+def per_frame(before: dict, after: dict, frames: int) -> dict[str, dict[str, float]]:
+    """node_counters' growth a frame between two readings, summed by process name (a process that started in
+    between counts from zero; one that ended is not seen)."""
+    out: dict[str, dict[str, float]] = {}
+    for pid, (name, counters) in after.items():
+        earlier = before.get(pid, (name, {}))[1]
+        for key, value in counters.items():
+            out.setdefault(name, {})[key] = out.get(name, {}).get(key, 0.0) + (value - earlier.get(key, 0.0)) / max(
+                frames, 1)
+    return out
+
+
+def interval_row(number: int, stamps: list, published: dict, poses: dict, rss: dict, processes: dict,
+                 probes: list) -> dict:
     latency = np.array([poses[s][0] - published[s] for s in stamps if s in poses])
     row = {"interval": number, "frames": len(stamps), "poses": len(latency),
             "pose_fraction": len(latency) / max(len(stamps), 1),
             "latency_ms_median": float(np.median(latency) * 1000) if len(latency) else float("nan"),
             "latency_ms_p90": float(np.percentile(latency, 90) * 1000) if len(latency) else float("nan"),
-            "rss_mb": rss}
+            "rss_mb": rss, "processes_per_frame": processes,
+            "speed_probe_ms": float(np.median(probes)) if probes else float("nan")}
     print(f"interval {number}: poses for {row['poses']} of {row['frames']} frames ({100 * row['pose_fraction']:.1f} "
-          f"%), latency median {row['latency_ms_median']:.1f} ms, p90 {row['latency_ms_p90']:.1f} ms; RSS "
-          + ", ".join(f"{name} {mb:.0f}" for name, mb in rss.items()) + " MB", flush=True)
+          f"%), latency median {row['latency_ms_median']:.1f} ms, p90 {row['latency_ms_p90']:.1f} ms, speed probe "
+          f"{row['speed_probe_ms']:.2f} ms; CPU ms a frame "
+          + ", ".join(f"{name} {1000 * c.get('cpu_s', float('nan')):.1f}" for name, c in processes.items())
+          + "; RSS " + ", ".join(f"{name} {mb:.0f}" for name, mb in rss.items()) + " MB", flush=True)
     return row
+
+
+def print_first_and_last(first: dict, last: dict) -> None:
+    print(f"\nthe first and the last interval:  {'first':>8} {'last':>8}  last/first")
+    for key, label in (("latency_ms_median", "latency, median (ms)"), ("latency_ms_p90", "latency, p90 (ms)"),
+                       ("speed_probe_ms", "speed probe: fixed work, CPU ms (the machine)")):
+        print(f"  {label:<52} {first[key]:8.2f} {last[key]:8.2f}  {last[key] / first[key]:6.2f}")
+    early, late = first["processes_per_frame"], last["processes_per_frame"]
+    for name in dict.fromkeys(list(early) + list(late)):  # (a worker is "python" until it names itself)
+        for key, label, scale in (("cpu_s", "CPU ms a frame", 1000), ("minor_faults", "page faults a frame", 1),
+                                  ("nonvoluntary", "cores taken away a frame", 1)):
+            a = early.get(name, {}).get(key, float("nan")) * scale
+            b = late.get(name, {}).get(key, float("nan")) * scale
+            print(f"  {name + ': ' + label:<52} {a:8.2f} {b:8.2f}  {b / a if a > 0 else float('nan'):6.2f}")
 
 
 def lap_row(number: int, stamps: list, poses: dict, truth: dict) -> dict:
@@ -176,6 +215,18 @@ def main() -> int:
     laps: list[list[float]] = [[]]
     intervals: list[list[float]] = [[]]
     rows, lap_rows = [], []
+    probes: list[float] = []  # the speed probe's figures since the last interval was reported
+    counted = (0, {})  # frames played and node_counters when the last interval was reported
+
+    def report_interval(stamps: list) -> None:
+        """An interval, reported a second after its last frame (when its poses are in); the processes' counters and
+        the probes are those since the previous report."""
+        nonlocal counted
+        now = (len(published), node_counters(node.pid))
+        rows.append(interval_row(len(rows) + 1, stamps, published, listener.poses, node_rss(node.pid),
+                                 per_frame(counted[1], now[1], now[0] - counted[0]), probes[:]))
+        counted = now
+        probes.clear()
     print(f"{n} frames, {args.minutes:.0f} minutes at 30 Hz through slam_node (preset {args.preset}, {args.policy} "
           f"policy); node log {log_path}", flush=True)
     try:
@@ -192,6 +243,7 @@ def main() -> int:
         order = (i for lap in range(total // n + 2) for i in lap_order(n, lap))
         next(order)  # the warm-up's frame
         start = time.monotonic()
+        counted = (0, node_counters(node.pid))
         for k in range(1, total):
             if node.poll() is not None:
                 break
@@ -203,6 +255,8 @@ def main() -> int:
             truth[stamp] = truth_of[i]
             laps[-1].append(stamp)
             intervals[-1].append(stamp)
+            if k % PROBE_EVERY == 0:
+                probes.append(speed_probe_ms())
             if (k + 1) % n == 0:
                 laps.append([])
             if (k + 1) % int(args.interval * FPS) == 0:
@@ -211,8 +265,7 @@ def main() -> int:
                 lap_rows.append(lap_row(len(lap_rows) + 1, laps[-2], listener.poses, truth))
                 laps[-2] = []
             if len(intervals[-1]) == int(FPS) and len(intervals) >= 2:
-                rows.append(interval_row(len(rows) + 1, intervals[-2], published, listener.poses,
-                                         node_rss(node.pid)))
+                report_interval(intervals[-2])
         end_of_play = time.monotonic()
         while time.monotonic() - end_of_play < args.settle and len(listener.poses) < len(published):
             time.sleep(1.0)
@@ -221,7 +274,7 @@ def main() -> int:
                 lap_rows.append(lap_row(len(lap_rows) + 1, stamps, listener.poses, truth))
         for stamps in intervals[len(rows):]:
             if stamps:
-                rows.append(interval_row(len(rows) + 1, stamps, published, listener.poses, node_rss(node.pid)))
+                report_interval(stamps)
         status = dict(listener.status)
     finally:
         if node.poll() is None:
@@ -244,6 +297,7 @@ def main() -> int:
         print(f"latency median: first interval {first['latency_ms_median']:.1f} ms, last "
               f"{last['latency_ms_median']:.1f} ms: {last['latency_ms_median'] / first['latency_ms_median']:.2f}x "
               f"(target <= 1.1x)")
+        print_first_and_last(first, last)
         print("memory (MB), first -> last interval: " + ", ".join(
             f"{name} {first['rss_mb'].get(name, float('nan')):.0f} -> {mb:.0f}" for name, mb in last["rss_mb"].items()))
     finite = [r["ate_cm"] for r in lap_rows if np.isfinite(r["ate_cm"])]
