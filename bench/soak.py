@@ -34,6 +34,7 @@ from eslam_core.config import load_config  # noqa: E402
 from eslam_core.datasets import open_dataset  # noqa: E402
 from eslam_core.evaluation.trajectory_error import ate  # noqa: E402
 from eslam_core.trajectory import Trajectory  # noqa: E402
+from eslam_core.cpu import freeze_start_up_objects  # noqa: E402
 from eslam_core.runtime import make_runtime  # noqa: E402
 from eslam_core.runtime.shared import stage_profile  # noqa: E402
 
@@ -180,6 +181,7 @@ def main() -> int:
 
     rt = make_runtime(cfg, ds.intrinsics, workers=2, policy=args.policy)
     rt.start()
+    freeze_start_up_objects()  # (as slam_node does: cpu.py)
     pids = {"parent": os.getpid(), **rt.resources()["pids"]}
 
     def counters() -> dict:

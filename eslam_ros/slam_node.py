@@ -52,6 +52,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from eslam_core.config import ConfigError
+from eslam_core.cpu import freeze_start_up_objects
 from eslam_core.runtime import RuntimeCrashed
 from eslam_ros.diagnostics import InputMonitor, StatusInputs, StatusReport, health_values
 from eslam_ros.input_pipeline import (DEPTH, RGB, STREAM_NAMES, AcceptedFrame, InputPipeline, PipelineEvent,
@@ -527,6 +528,7 @@ def main(argv: Optional[list[str]] = None, managed: bool = False) -> int:
     # (The managed node's transitions run on the executor's threads: rclpy issue 1142, see spin_once.)
     executor = MultiThreadedExecutor(num_threads=2) if managed else node_executor()
     executor.add_node(node)
+    freeze_start_up_objects()  # (a full collection of them stalled every callback: cpu.py)
     status = EXIT_INTERRUPTED
     try:
         while rclpy.ok() and not stop.requested and not node.failed and node.lifecycle_state != "finalized":

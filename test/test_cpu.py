@@ -1,11 +1,12 @@
 """CPU settings: denormals flushed in every torch thread inside the block and restored after it; glibc keeps freed
-memory."""
+memory; a worker's start-up objects out of the garbage collector's reach."""
+import gc
 import platform
 
 import pytest
 import torch
 
-from eslam_core.cpu import denormals_flushed, flat_nonzero, keep_freed_memory
+from eslam_core.cpu import FullCollections, denormals_flushed, flat_nonzero, freeze_start_up_objects, keep_freed_memory
 from eslam_core.native import load_kernel
 
 
@@ -38,3 +39,23 @@ def test_flat_nonzero_equals_torch_nonzero(dtype, share):
     got = flat_nonzero(mask)
     assert got.dtype == torch.int64
     torch.testing.assert_close(got, torch.nonzero(mask.reshape(-1)).squeeze(1))
+
+
+def test_start_up_objects_are_frozen_and_full_collections_counted():
+    start_up = [[i] for i in range(10_000)]  # objects that live as long as the process (a worker's modules)
+    try:
+        freeze_start_up_objects()
+        collections = FullCollections()
+        assert gc.get_freeze_count() >= len(start_up)
+        walked = gc.get_objects(generation=2)  # what a full collection walks
+        assert not any(o is start_up or o is start_up[0] for o in walked)
+        del walked
+        gc.collect(1)  # (a younger generation's collection: not a full one)
+        assert collections.count == 0
+        gc.collect()
+        assert collections.count == 1 and collections.seconds > 0
+        collections.close()
+        gc.collect()
+        assert collections.count == 1
+    finally:
+        gc.unfreeze()

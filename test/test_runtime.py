@@ -170,6 +170,8 @@ def test_per_stage_profile_of_a_pipelined_run(runs):
     waits = profile.pop("tracker: waiting for the mapper")
     assert waits["ms"] > 0  # frame 1 waited for the warm-up
     assert profile.pop("tracker: a loaded map's keyframes indexed")["total_s"] == 0  # (a new map: the mapper's)
+    for worker in ("tracker", "mapper"):  # (start-up frozen: few if any full collections, cpu.py)
+        assert profile.pop(f"{worker}: full garbage collections")["total_s"] < 0.1 * runs[2]["seconds"]
     assert all(row["ms"] > 0 and np.isfinite(row["ms"]) for row in profile.values()), profile
     tracker = [row for stage, row in profile.items() if stage.startswith("tracker")]
     mapper = [row for stage, row in profile.items() if stage.startswith("mapper")]

@@ -37,7 +37,7 @@ import torch.multiprocessing  # noqa: F401 - registers the reductions that send 
 
 from eslam_core.camera import Intrinsics
 from eslam_core.child_process import become_child, spawned_with_stop_signals_blocked, wait_for_start
-from eslam_core.cpu import lower_priority
+from eslam_core.cpu import freeze_start_up_objects, lower_priority
 from eslam_core.outputs.mesh import MeshSettings
 from eslam_core.outputs.mesh_blocks import (BlockLayout, IncrementalMesher, Key, MeshSource, mesh_source, thinning_stride,
                                             triangle_soup)
@@ -297,6 +297,7 @@ def _serve(connection, setup: _Setup) -> None:
     lower_priority(setup.nice)
     torch.set_num_threads(1)
     worker = _Worker(setup)
+    freeze_start_up_objects()
     connection.send("ready")
     while True:
         try:

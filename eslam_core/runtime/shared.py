@@ -322,6 +322,8 @@ class Counter(IntEnum):
     LOOP_CORRECTION_S = 42  # mapper: the newest loop's seconds of input from the revisit to the corrected map
     TRACKED_INDEX = 43  # tracker: the newest tracked frame's index
     TRACKED_STAMP = 44  # tracker: and its stamp
+    TRACK_GC_S = 45  # tracker: full garbage collections (cpu.FullCollections)
+    MAP_GC_S = 46  # mapper: the same
 
 
 # The stage counters, each with the events it is divided by: (stage, seconds, events, events not timed). The
@@ -339,6 +341,8 @@ STAGES = (
     ("mapper: map publication", Counter.PUBLISH_SECONDS, Counter.PUBLISHES, 0),
     ("mapper: memory and consistency", Counter.MAP_MEASURE_S, Counter.MAPPING_STEPS, 0),
     ("mapper: keyframe indexed (relocalization, map check)", Counter.MAP_INDEX_S, Counter.KEYFRAMES, 1),
+    ("tracker: full garbage collections", Counter.TRACK_GC_S, Counter.TRACKED, 0),
+    ("mapper: full garbage collections", Counter.MAP_GC_S, Counter.MAPPING_STEPS, 1),
 )
 
 

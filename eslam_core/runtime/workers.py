@@ -56,7 +56,7 @@ from eslam_core.camera import Frame, Intrinsics
 from eslam_core.config import Config
 from eslam_core.device import peak_memory_mb as device_peak_mb, resolve_device
 from eslam_core.child_process import become_child
-from eslam_core.cpu import PeriodicRelease, lower_priority
+from eslam_core.cpu import FullCollections, PeriodicRelease, freeze_start_up_objects, lower_priority
 from eslam_core.frames import PreparedFrame, pixel_directions_table, prepare_frame, working_intrinsics
 from eslam_core.mapping.keyframes import Keyframe
 from eslam_core.mapping.mapper import import_optimiser_code
@@ -282,6 +282,13 @@ def become_worker(name: str, setup: WorkerSetup) -> None:
         load_kernel(kernel)
 
 
+def started_up() -> FullCollections:
+    """A worker's start-up done: its objects so far frozen (cpu.freeze_start_up_objects), the full collections
+    from now on timed."""
+    freeze_start_up_objects()
+    return FullCollections()
+
+
 def run_worker(name: str, body, setup: WorkerSetup, errors) -> None:
     """Run a worker's main loop; on any failure send the traceback to the parent and exit non-zero."""
     code = 0
@@ -456,10 +463,11 @@ class TrackerWorker:
 
     def run(self) -> None:
         self.ch.to_parent.put(WorkerReady("tracker", os.getpid()))
-        memory = PeriodicRelease()
+        memory, collections = PeriodicRelease(), started_up()
         while not self.ch.control.exiting:
             self.cores.update()
             memory.release()
+            self.ch.board.set(Counter.TRACK_GC_S, collections.seconds)
             self._sync_epoch()
             self._receive(0.0)
             if self.finished:
@@ -709,10 +717,11 @@ class MapperWorker:
 
     def run(self) -> None:
         self.ch.to_parent.put(WorkerReady("mapper", os.getpid()))
-        memory = PeriodicRelease()
+        memory, collections = PeriodicRelease(), started_up()
         while not self.ch.control.exiting:
             self.cores.update()
             memory.release()
+            self.ch.board.set(Counter.MAP_GC_S, collections.seconds)
             self._sync_epoch()
             self._serve_requests()
             self._receive(0.0 if self.pending else POLL_S)
